@@ -1,0 +1,266 @@
+"""Save, load and restart a run: one HDF5 file per snapshot (h5py).
+
+File layout (format version 1)::
+
+    /                     root attrs: ``format_version`` (int), ``jdem_version`` (str),
+                          plus the user's ``attrs`` (flat str/int/float/bool values)
+    /state                group, attr ``_class = "State"``
+        /particles        group, attr ``_class = "Particles"``
+            pos           dataset (N, d), dtype as in memory
+            ...           one dataset per field, in field order
+        /contacts, /walls, /bonds   likewise
+        step, time, first_bad_step  0-d datasets
+    /params               group, attr ``_class = "Params"``; one dataset per field
+    /config               group with no datasets: one attribute per dataclass field,
+                          attr ``_class = "Config"``; fields that are not plain
+                          str/int/float/bool (tuples) are stored as JSON strings and
+                          listed in attr ``_json_fields``
+    /history              one dataset per entry (insertion order kept); any shape,
+                          e.g. a leading batch axis
+
+Every array keeps its dtype (bool, int32, float64, ...), its shape (0-d and
+zero-length included) and its exact bits.  Arrays larger than 1 MiB are gzip
+compressed, smaller ones are stored plain.  A NamedTuple group is rebuilt from
+the class in :mod:`jdem.state` named by its ``_class`` attribute.
+
+Files are written to a temporary name beside the target and then renamed, so an
+interrupted save never destroys an older snapshot of the same name.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import pathlib
+from typing import Any, NamedTuple
+
+import h5py
+import jax.numpy as jnp
+import numpy as np
+
+from jdem import state as _state_mod
+from jdem.validate import InputError
+
+FORMAT_VERSION = 1
+COMPRESS_ABOVE_BYTES = 1 << 20  # gzip only arrays larger than 1 MiB
+_RESERVED_ROOT_ATTRS = ("format_version", "jdem_version", "_json_fields")
+_SCALAR_TYPES = (str, bool, int, float, np.bool_, np.integer, np.floating)
+
+
+class CorruptFileError(InputError):
+    """The file exists but is not a readable jdem HDF5 file (not HDF5, truncated,
+    or missing a group / dataset); the message names the path and the problem."""
+
+
+class RunData(NamedTuple):
+    """What :func:`load_run` returns; any part that was not saved is ``None``."""
+
+    state: Any          # jdem.state.State (or None)
+    params: Any         # jdem.state.Params (or None)
+    config: Any         # jdem.state.Config (or None)
+    history: Any        # dict[str, jax.Array] (or None)
+    attrs: Any          # dict[str, str | int | float | bool] (or None)
+
+
+def _jdem_version() -> str:
+    try:
+        import jdem
+        return str(getattr(jdem, "__version__", "unknown"))
+    except Exception:  # pragma: no cover - jdem is importable if we are
+        return "unknown"
+
+
+# ----------------------------------------------------------------------------- writing
+
+def _write_array(group: h5py.Group, name: str, value) -> None:
+    a = np.asarray(value)
+    big = a.nbytes > COMPRESS_ABOVE_BYTES
+    group.create_dataset(name, data=a, compression="gzip" if big else None)
+
+
+def _write_tree(group: h5py.Group, tree) -> None:
+    """One sub-group per nested NamedTuple, one dataset per array leaf."""
+    if not hasattr(tree, "_fields"):
+        raise InputError(f"expected a NamedTuple to save, got {type(tree).__name__}")
+    group.attrs["_class"] = type(tree).__name__
+    for name, value in zip(tree._fields, tree):
+        if isinstance(value, tuple) and hasattr(value, "_fields"):
+            _write_tree(group.create_group(name), value)
+        else:
+            _write_array(group, name, value)
+
+
+def _write_attrs(attrs: h5py.AttributeManager, mapping: dict, what: str) -> None:
+    """Plain scalars as native attributes; anything else (tuples) as JSON."""
+    json_fields = []
+    for key, value in mapping.items():
+        if not isinstance(key, str) or not key or key.startswith("_"):
+            raise InputError(f"{what} key must be a non-empty str not starting with '_', got {key!r}")
+        if isinstance(value, _SCALAR_TYPES):
+            attrs[key] = value
+        else:
+            try:
+                attrs[key] = json.dumps(value, allow_nan=True,
+                                        default=lambda o: o.item() if hasattr(o, "item") else o.tolist())
+            except (TypeError, AttributeError) as e:
+                raise InputError(f"{what}[{key!r}] cannot be stored: {value!r} ({e})") from None
+            json_fields.append(key)
+    attrs["_json_fields"] = json.dumps(json_fields)
+
+
+def save_run(path, *, state=None, params=None, config=None, history=None, attrs=None,
+             overwrite: bool = True) -> pathlib.Path:
+    """Write any of ``state``, ``params``, ``config``, ``history`` (dict name -> array,
+    numpy or JAX) and root ``attrs`` (flat dict of str/int/float/bool) to ``path``.
+
+    Parent directories are created.  With ``overwrite=False`` an existing file raises
+    ``FileExistsError``.  Returns the path written.
+    """
+    path = pathlib.Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists and overwrite=False")
+    attrs = dict(attrs or {})
+    clash = set(attrs) & set(_RESERVED_ROOT_ATTRS)
+    if clash:
+        raise InputError(f"attrs may not use the reserved names {sorted(clash)}")
+    if history is not None:
+        bad = [k for k in history if not isinstance(k, str) or not k or "/" in k or k == "."]
+        if bad:
+            raise InputError(f"history names must be non-empty str without '/', got {bad!r}")
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["format_version"] = FORMAT_VERSION
+            f.attrs["jdem_version"] = _jdem_version()
+            _write_attrs(f.attrs, attrs, "attrs")
+            if state is not None:
+                _write_tree(f.create_group("state"), state)
+            if params is not None:
+                _write_tree(f.create_group("params"), params)
+            if config is not None:
+                g = f.create_group("config")
+                g.attrs["_class"] = type(config).__name__
+                _write_attrs(g.attrs, {fl.name: getattr(config, fl.name)
+                                       for fl in dataclasses.fields(config)}, "config")
+            if history is not None:
+                g = f.create_group("history", track_order=True)
+                for name, value in history.items():
+                    _write_array(g, name, value)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+# ----------------------------------------------------------------------------- reading
+
+def _to_py(value):
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def _tuples(value):
+    return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
+
+
+def _read_attrs(attrs: h5py.AttributeManager, skip=("_class",)) -> dict:
+    json_fields = set(json.loads(attrs.get("_json_fields", "[]")))
+    out = {}
+    for key, value in attrs.items():
+        if key in skip or key == "_json_fields":
+            continue
+        value = _to_py(value)
+        out[key] = _tuples(json.loads(value)) if key in json_fields else value
+    return out
+
+
+def _read_array(ds: h5py.Dataset):
+    return jnp.asarray(np.asarray(ds[()]))
+
+
+def _class_of(group: h5py.Group, default: str, where: str, path) -> type:
+    """The ``jdem.state`` class named by the group's ``_class`` attr (else ``default``)."""
+    name = _to_py(group.attrs.get("_class", default))
+    cls = getattr(_state_mod, str(name), None)
+    if not isinstance(cls, type):
+        raise CorruptFileError(f"{where}: unknown class {name!r} in {path}")
+    return cls
+
+
+def _read_tree(group: h5py.Group, cls: type, where: str, path):
+    values = []
+    for name in cls._fields:
+        sub = f"{where}/{name}"
+        if name not in group:
+            raise CorruptFileError(f"{sub} missing in {path}")
+        node = group[name]
+        if isinstance(node, h5py.Group):
+            hint = str(cls.__annotations__.get(name, ""))  # e.g. "Particles"
+            values.append(_read_tree(node, _class_of(node, hint, sub, path), sub, path))
+        else:
+            values.append(_read_array(node))
+    return cls(*values)
+
+
+def _load(path, parts=("state", "params", "config", "history", "attrs")) -> RunData:
+    path = pathlib.Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"no such file: {path}")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise CorruptFileError(f"cannot open {path} as HDF5: {e}") from None
+    out = dict.fromkeys(RunData._fields)
+    try:
+        with f:
+            version = _to_py(f.attrs.get("format_version", FORMAT_VERSION))
+            if int(version) > FORMAT_VERSION:
+                raise CorruptFileError(
+                    f"{path} has format_version {version}, newer than supported {FORMAT_VERSION}")
+            for name, default in (("state", "State"), ("params", "Params")):
+                if name in parts and name in f:
+                    out[name] = _read_tree(f[name], _class_of(f[name], default, name, path), name, path)
+            if "config" in parts and "config" in f:
+                g = f["config"]
+                cls = _class_of(g, "Config", "config", path)
+                fields = _read_attrs(g.attrs)
+                try:
+                    out["config"] = cls(**fields)
+                except (TypeError, ValueError) as e:
+                    raise CorruptFileError(f"config in {path} is invalid: {e}") from None
+            if "history" in parts and "history" in f:
+                out["history"] = {k: _read_array(v) for k, v in f["history"].items()}
+            if "attrs" in parts:
+                user = _read_attrs(f.attrs, skip=_RESERVED_ROOT_ATTRS)
+                out["attrs"] = user or None
+    except CorruptFileError:
+        raise
+    except (OSError, KeyError, RuntimeError, ValueError, TypeError) as e:
+        raise CorruptFileError(f"cannot read {path}: {type(e).__name__}: {e}") from None
+    return RunData(**out)
+
+
+def load_run(path) -> RunData:
+    """Read everything :func:`save_run` wrote.  Arrays come back as ``jax.numpy``
+    arrays with their stored dtype (float64 stays float64 when ``jax_enable_x64``
+    is on; JAX narrows it to float32 otherwise).
+
+    Raises ``FileNotFoundError`` if ``path`` does not exist and
+    :class:`CorruptFileError` if it is not HDF5, is truncated, or lacks a field.
+    """
+    return _load(path)
+
+
+def load_state(path):
+    """The ``State`` saved in ``path``; ``CorruptFileError`` if there is none."""
+    state = _load(path, parts=("state",)).state
+    if state is None:
+        raise CorruptFileError(f"state missing in {path}")
+    return state
+
+
+def load_history(path) -> dict:
+    """The history dict saved in ``path`` (``{}`` if none was saved)."""
+    return _load(path, parts=("history",)).history or {}

@@ -1,0 +1,70 @@
+"""Small vector helpers shared by contacts, bonds and walls, generic over 2D / 3D.
+
+In 2D an angular velocity or torque is a scalar about the out-of-plane axis
+(shape ``(...,)``); in 3D it is a vector (shape ``(..., 3)``).  These helpers
+hide that difference so force laws are written once.
+"""
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+
+def cross_w_r(w, r):
+    """Velocity ``w x r`` of a point at offset ``r`` (..., d) on a body spinning at ``w``."""
+    if r.shape[-1] == 2:
+        return jnp.stack([-w * r[..., 1], w * r[..., 0]], axis=-1)
+    return jnp.cross(w, r)
+
+
+def cross_r_f(r, f):
+    """Torque ``r x f`` of force ``f`` (..., d) at offset ``r``; scalar in 2D."""
+    if r.shape[-1] == 2:
+        return r[..., 0] * f[..., 1] - r[..., 1] * f[..., 0]
+    return jnp.cross(r, f)
+
+
+def dot(a, b):
+    """Row-wise dot product over the last axis."""
+    return jnp.sum(a * b, axis=-1)
+
+
+def safe_norm(v, eps=0.0):
+    """Euclidean norm over the last axis whose gradient is finite at zero."""
+    sq = jnp.sum(v * v, axis=-1)
+    pos = sq > eps * eps
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+
+
+def unit(v):
+    """Unit vector along the last axis, and the length; zero vectors give a zero unit."""
+    n = safe_norm(v)
+    return v / jnp.where(n > 0, n, 1.0)[..., None], n
+
+
+def project_tangent(vec, normal):
+    """Remove the component of ``vec`` along the unit ``normal``."""
+    return vec - dot(vec, normal)[..., None] * normal
+
+
+def rotate_into_plane(vec, normal):
+    """Turn a stored tangential vector into the current tangent plane, keeping its
+    length (the usual incremental-history update when the contact normal rotates)."""
+    old = safe_norm(vec)
+    proj = project_tangent(vec, normal)
+    new = safe_norm(proj)
+    scale = jnp.where(new > 0, old / jnp.where(new > 0, new, 1.0), 0.0)
+    return proj * scale[..., None]
+
+
+def split_rotation(w, normal):
+    """Split a rotation quantity into its twist (along ``normal``, scalar) and bending
+    part.  2D: twist is 0 and bending is ``w`` itself."""
+    if normal.shape[-1] == 2:
+        return jnp.zeros_like(w), w
+    tw = dot(w, normal)
+    return tw, w - tw[..., None] * normal
+
+
+def segment_add(values, index, n):
+    """Sum rows of ``values`` into ``n`` bins given by ``index`` (scatter-add)."""
+    return jnp.zeros((n,) + values.shape[1:], values.dtype).at[index].add(values)

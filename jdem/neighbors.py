@@ -1,0 +1,247 @@
+"""Cell-list neighbour search with a fixed capacity and overflow detection
+(000 §2.3.3 "分格检索", §4.5.1).
+
+The domain is cut into a regular grid of cells of edge ``Config.cell_size``
+(>= largest diameter + skin).  Each particle is checked only against particles
+in its own and the adjacent cells (3**d cells), so a build is O(N).  The list
+keeps every pair (i < j) whose gap is below ``Config.skin``; it stays valid
+until some particle has moved (or grown) by half the skin, when it is rebuilt.
+
+Capacities are static (JAX needs fixed shapes): ``Config.capacity`` pairs and
+``Config.max_per_cell`` particles per cell.  A build that finds more records
+how many it needed (``Contacts.n_pairs``, ``Contacts.max_in_cell``); the host
+loop in :mod:`jdem.simulate` sees :func:`overflowed`, re-allocates larger and
+re-runs the chunk, so a contact is never dropped silently.
+
+Tangential contact history survives a rebuild: pairs are kept sorted by
+(i, j), and every pair of the new list looks up its old row by binary search.
+Bonded pairs (see :mod:`jdem.bond`) are excluded: the bond owns them.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jdem.kinematics import dot
+from jdem.state import Config, Contacts, Particles
+
+
+# ----------------------------------------------------------------------------- grid
+def _cell_coords(pos, config: Config):
+    origin = jnp.asarray(config.grid_origin, pos.dtype)
+    shape = jnp.asarray(config.grid_shape, jnp.int32)
+    c = jnp.floor((pos - origin) / config.cell_size).astype(jnp.int32)
+    # clamping keeps neighbouring particles in neighbouring cells: still exact
+    return jnp.clip(c, 0, shape - 1)
+
+
+def _ravel(coords, config: Config):
+    idx = jnp.zeros(coords.shape[:-1], jnp.int32)
+    for axis, n in enumerate(config.grid_shape):
+        idx = idx * n + coords[..., axis]
+    return idx
+
+
+def _stencil(dim):
+    return np.array(list(itertools.product((-1, 0, 1), repeat=dim)), dtype=np.int32)
+
+
+def _cell_table(particles: Particles, config: Config):
+    """Particles sorted into cells: table (n_cells + 1, K) of particle ids, N = empty.
+
+    Returns the table, each particle's cell coordinates and the fullest cell's count.
+    """
+    n = particles.pos.shape[0]
+    k = config.max_per_cell
+    coords = _cell_coords(particles.pos, config)
+    cell = jnp.where(particles.valid, _ravel(coords, config), config.n_cells)
+    order = jnp.argsort(cell, stable=True)
+    sorted_cell = cell[order]
+    first = jnp.searchsorted(sorted_cell, sorted_cell, side="left")
+    rank = jnp.arange(n, dtype=jnp.int32) - first.astype(jnp.int32)
+    in_grid = sorted_cell < config.n_cells
+    max_in_cell = jnp.max(jnp.where(in_grid, rank + 1, 0), initial=0)
+    slot = jnp.where(in_grid & (rank < k), rank, k)  # k is out of range: dropped
+    table = jnp.full((config.n_cells + 1, k), n, jnp.int32)
+    table = table.at[sorted_cell, slot].set(order.astype(jnp.int32), mode="drop")
+    return table, coords, max_in_cell
+
+
+def _candidates(particles: Particles, config: Config):
+    """All (i, j) with j in a cell adjacent to i's: arrays (N, M) with M = 3**d * K."""
+    n = particles.pos.shape[0]
+    table, coords, max_in_cell = _cell_table(particles, config)
+    shape = jnp.asarray(config.grid_shape, jnp.int32)
+    neigh = coords[:, None, :] + jnp.asarray(_stencil(config.dim))[None]  # (N, S, d)
+    inside = jnp.all((neigh >= 0) & (neigh < shape), axis=-1)
+    cells = jnp.where(inside, _ravel(neigh, config), config.n_cells)
+    cand = table[cells].reshape(n, -1)  # (N, S*K), n marks an empty slot
+    return cand, max_in_cell
+
+
+# ----------------------------------------------------------------------------- search
+def lex_search(keys_i, keys_j, n_valid, query_i, query_j):
+    """Binary search of (query_i, query_j) in the lexicographically sorted prefix
+    ``keys[:n_valid]``.  Returns (row, found); vectorised over the queries."""
+    size = keys_i.shape[0]
+    if size == 0:
+        z = jnp.zeros(query_i.shape, jnp.int32)
+        return z, jnp.zeros(query_i.shape, bool)
+    lo = jnp.zeros(query_i.shape, jnp.int32)
+    hi = jnp.broadcast_to(jnp.asarray(n_valid, jnp.int32), query_i.shape)
+
+    def body(_, bounds):
+        lo, hi = bounds
+        mid = (lo + hi) // 2
+        mi, mj = keys_i[jnp.clip(mid, 0, size - 1)], keys_j[jnp.clip(mid, 0, size - 1)]
+        less = (mi < query_i) | ((mi == query_i) & (mj < query_j))
+        active = lo < hi
+        lo = jnp.where(active & less, mid + 1, lo)
+        hi = jnp.where(active & ~less, mid, hi)
+        return lo, hi
+
+    lo, _ = jax.lax.fori_loop(0, max(1, math.ceil(math.log2(size + 1)) + 1), body, (lo, hi))
+    row = jnp.clip(lo, 0, size - 1)
+    found = (lo < n_valid) & (keys_i[row] == query_i) & (keys_j[row] == query_j)
+    return row, found
+
+
+def _sort_pairs(i, j, valid, n):
+    """Sort pairs lexicographically with invalid rows last; invalid rows get (0, 0)."""
+    ki = jnp.where(valid, i, n)
+    kj = jnp.where(valid, j, n)
+    ki, kj = jax.lax.sort((ki, kj), num_keys=2)
+    valid = ki < n
+    return jnp.where(valid, ki, 0), jnp.where(valid, kj, 0), valid
+
+
+# ----------------------------------------------------------------------------- build
+def build(contacts: Contacts, particles: Particles, config: Config, bonds=None) -> Contacts:
+    """Rebuild the pair list from scratch at the current positions (jit-able).
+
+    Keeps the tangential history of pairs that were already listed.  Records
+    the space it needed so that the host can detect overflow.
+    """
+    n = particles.pos.shape[0]
+    cap = contacts.i.shape[0]
+    cand, max_in_cell = _candidates(particles, config)
+    pos_pad = jnp.concatenate([particles.pos, jnp.zeros_like(particles.pos[:1])])
+    rad_pad = jnp.concatenate([particles.radius, jnp.zeros_like(particles.radius[:1])])
+    ii = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32)[:, None], cand.shape)
+    real = (cand < n) & (cand > ii) & particles.valid[:, None]
+    delta = pos_pad[cand] - particles.pos[:, None, :]
+    reach = rad_pad[cand] + particles.radius[:, None] + config.skin
+    mask = real & (dot(delta, delta) < reach * reach)
+    if bonds is not None and bonds.i.shape[0] > 0:
+        n_bonds = jnp.sum(bonds.valid).astype(jnp.int32)
+        _, bonded = lex_search(bonds.i, bonds.j, n_bonds, ii, cand)
+        mask = mask & ~bonded
+    flat = mask.reshape(-1)
+    count = jnp.sum(flat).astype(jnp.int32)
+    (sel,) = jnp.nonzero(flat, size=cap, fill_value=0)
+    valid = jnp.arange(cap) < count
+    new_i = jnp.where(valid, sel // cand.shape[1], 0).astype(jnp.int32)
+    new_j = jnp.where(valid, cand.reshape(-1)[sel], 0).astype(jnp.int32)
+    new_i, new_j, valid = _sort_pairs(new_i, new_j, valid, n)
+    # carry the tangential history over (design: contact history survives rebuilds)
+    n_old = jnp.sum(contacts.valid).astype(jnp.int32)
+    row, found = lex_search(contacts.i, contacts.j, n_old, new_i, new_j)
+    keep = (found & valid)[:, None]
+    shear = jnp.where(keep, contacts.shear[row] if cap else contacts.shear, 0.0)
+    return Contacts(
+        i=new_i, j=new_j, valid=valid, shear=shear,
+        pos_at_build=particles.pos, radius_at_build=particles.radius,
+        n_pairs=jnp.maximum(contacts.n_pairs, count),
+        max_in_cell=jnp.maximum(contacts.max_in_cell, max_in_cell.astype(jnp.int32)),
+        n_builds=contacts.n_builds + 1)
+
+
+def needs_rebuild(contacts: Contacts, particles: Particles, config: Config):
+    """True when a pair outside the list could now be within contact: some particle
+    moved by more than half the skin (growth of radii counted too)."""
+    moved = particles.pos - contacts.pos_at_build
+    disp = jnp.sqrt(jnp.max(jnp.where(particles.valid, dot(moved, moved), 0.0), initial=0.0))
+    grow = jnp.max(jnp.where(particles.valid, particles.radius - contacts.radius_at_build, 0.0),
+                   initial=0.0)
+    return 2.0 * disp + 2.0 * jnp.maximum(grow, 0.0) >= config.skin
+
+
+def update(contacts: Contacts, particles: Particles, config: Config, bonds=None) -> Contacts:
+    """Rebuild if needed (``lax.cond``), else return the list unchanged."""
+    return jax.lax.cond(needs_rebuild(contacts, particles, config),
+                        lambda c: build(c, particles, config, bonds), lambda c: c, contacts)
+
+
+def overflowed(contacts: Contacts, config: Config):
+    """True if some build since allocation did not fit (works on batched lists too)."""
+    return jnp.any((contacts.n_pairs > contacts.i.shape[-1]) |
+                   (contacts.max_in_cell > config.max_per_cell))
+
+
+def empty(particles: Particles, config: Config, capacity=None) -> Contacts:
+    """An unbuilt list of the given capacity (forces a build on first use)."""
+    cap = config.capacity if capacity is None else capacity
+    n, d = particles.pos.shape
+    dtype = particles.pos.dtype
+    return Contacts(
+        i=jnp.zeros((cap,), jnp.int32), j=jnp.zeros((cap,), jnp.int32),
+        valid=jnp.zeros((cap,), bool), shear=jnp.zeros((cap, d), dtype),
+        pos_at_build=jnp.full((n, d), jnp.inf, dtype), radius_at_build=particles.radius,
+        n_pairs=jnp.zeros((), jnp.int32), max_in_cell=jnp.zeros((), jnp.int32),
+        n_builds=jnp.zeros((), jnp.int32))
+
+
+def grid_for(particles: Particles, *, skin, margin=None, extra_bounds=None):
+    """Grid settings (origin, shape, cell size) covering the valid particles.
+
+    ``extra_bounds`` = (lo, hi) widens the box, e.g. to the walls.  Particles that
+    later leave the box are clamped into border cells (correct, only slower).
+    """
+    pos = np.asarray(particles.pos)[np.asarray(particles.valid)]
+    rad = np.asarray(particles.radius)[np.asarray(particles.valid)]
+    cell = float(2.0 * rad.max() + skin)
+    lo, hi = pos.min(axis=0), pos.max(axis=0)
+    if extra_bounds is not None:
+        lo = np.minimum(lo, extra_bounds[0])
+        hi = np.maximum(hi, extra_bounds[1])
+    margin = cell if margin is None else margin
+    lo = lo - margin
+    shape = tuple(int(max(1, math.ceil((h + margin - l) / cell))) for l, h in zip(lo, hi))
+    return tuple(float(v) for v in lo), shape, cell
+
+
+def allocate(particles: Particles, config: Config, bonds=None, *, slack=1.25,
+             old: Contacts | None = None):
+    """Size the list for the current positions and build it (host function).
+
+    Returns ``(contacts, config)`` where ``config`` has capacity and max_per_cell
+    grown to fit with ``slack``.  If ``old`` is given its tangential history is kept.
+    """
+    probe = config.replace(capacity=1)
+    c = build(empty(particles, probe, 1), particles, probe, bonds)
+    need_pairs, need_cell = int(c.n_pairs), int(c.max_in_cell)
+    if old is not None:
+        need_pairs = max(need_pairs, int(np.max(np.asarray(old.n_pairs))))
+        need_cell = max(need_cell, int(np.max(np.asarray(old.max_in_cell))))
+    cap = max(config.capacity, int(math.ceil(need_pairs * slack)) + 16)
+    k = max(config.max_per_cell, need_cell + 2)
+    if k != config.max_per_cell:  # the probe could not see pairs in overfull cells
+        return allocate(particles, config.replace(max_per_cell=k), bonds, slack=slack, old=old)
+    config = config.replace(capacity=cap, max_per_cell=k)
+    start = empty(particles, config) if old is None else _resize(old, cap)
+    return build(start, particles, config, bonds), config
+
+
+def _resize(contacts: Contacts, cap: int) -> Contacts:
+    """Copy a list into a larger capacity (rows beyond the old ones invalid) and
+    reset its need counters."""
+    old_cap = contacts.i.shape[0]
+    pad = lambda a: jnp.concatenate([a, jnp.zeros((cap - old_cap,) + a.shape[1:], a.dtype)])
+    return contacts._replace(i=pad(contacts.i), j=pad(contacts.j), valid=pad(contacts.valid),
+                             shear=pad(contacts.shear),
+                             n_pairs=jnp.zeros((), jnp.int32),
+                             max_in_cell=jnp.zeros((), jnp.int32))

@@ -1,0 +1,83 @@
+"""Rigid planar walls: prescribed velocity or servo-controlled normal stress
+(000 §4.4.1, servo law 000 eq 4-69).
+
+A wall is an infinite plane through ``point`` with unit ``normal`` pointing into
+the particle domain.  Particle–wall contacts use the same contact law as
+particle pairs (the wall has a material index; for Hertz it acts as a sphere of
+infinite radius).  The tangential history of every (wall, particle) pair is kept
+densely in ``Walls.shear`` (W, N, d): walls are few, so no list is needed.
+
+Servo control follows the PFC/Itasca reading of 000 eq 4-69: the wall's normal
+speed is proportional to the stress error,
+
+    v = G (sigma_target - sigma_measured),   G = alpha A / (sum k_n * dt),
+
+where sum k_n is the total normal stiffness of the particles touching the wall
+and 0 < alpha < 1 (``servo_gain``) keeps the wall from over-shooting in one step.
+"""
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from jdem.contact import dashpot, normal_law, tangential_update
+from jdem.kinematics import cross_r_f, cross_w_r, dot
+from jdem.state import Config, Params, Particles, Walls
+
+
+def wall_forces(walls: Walls, particles: Particles, params: Params, config: Config):
+    """Contact forces between every wall and every particle.
+
+    Returns ``(walls, force (N, d), torque, n_touching (N,))``; ``walls.force``
+    (W, d) is set to the total force the particles exert on each wall and
+    ``walls.n_contacts`` to the number touching it.
+    """
+    p = particles
+    if walls.point.shape[0] == 0:
+        zero_t = jnp.zeros_like(p.ext_torque)
+        return walls, jnp.zeros_like(p.pos), zero_t, jnp.zeros(p.pos.shape[:1], jnp.int32)
+    normal = walls.normal[:, None, :]  # (W, 1, d)
+    dist = dot(p.pos[None] - walls.point[:, None, :], normal)  # (W, N)
+    overlap = p.radius[None] - dist
+    touching = walls.valid[:, None] & p.valid[None] & (overlap > 0)
+    overlap = jnp.where(touching, overlap, 0.0)
+    mat_p = jnp.broadcast_to(p.material[None], overlap.shape)
+    mat_w = jnp.broadcast_to(walls.material[:, None], overlap.shape)
+    r_eff = jnp.broadcast_to(p.radius[None], overlap.shape)
+    fn, kn, kt = normal_law(overlap, r_eff, mat_p, mat_w, params, config.contact_model)
+
+    arm = -(p.radius[None] - 0.5 * overlap)[..., None] * normal  # centre -> contact point
+    v_rel = p.vel[None] + cross_w_r(p.angvel[None], arm) - walls.vel[:, None, :]
+    approach = -dot(v_rel, normal)  # > 0 when the particle closes on the wall
+    v_t = v_rel + approach[..., None] * normal
+    fn_total = jnp.where(touching, jnp.maximum(fn + dashpot(kn, p.mass[None], approach, params), 0.0), 0.0)
+    mu = jnp.minimum(params.friction[mat_p], params.friction[mat_w])
+    shear = tangential_update(walls.shear, jnp.broadcast_to(normal, walls.shear.shape), v_t, kt,
+                              fn, mu, params.dt, touching)
+    force_pw = fn_total[..., None] * normal + shear  # on the particle, (W, N, d)
+    torque_pw = cross_r_f(arm, force_pw)
+    walls = walls._replace(shear=shear, force=-jnp.sum(force_pw, axis=1),
+                           n_contacts=jnp.sum(touching, axis=1).astype(jnp.int32))
+    kn_sum = jnp.sum(jnp.where(touching, kn, 0.0), axis=1)
+    walls = _servo(walls, kn_sum, params)
+    return walls, jnp.sum(force_pw, axis=0), jnp.sum(torque_pw, axis=0), jnp.sum(touching, axis=0)
+
+
+def normal_stress(walls: Walls):
+    """Compressive normal stress the particles put on each wall [Pa], (W,)."""
+    return -dot(walls.force, walls.normal) / walls.area
+
+
+def _servo(walls: Walls, kn_sum, params: Params) -> Walls:
+    """000 eq 4-69: set the normal speed of servo walls from the stress error."""
+    k = jnp.maximum(kn_sum, jnp.min(params.kn))  # a free wall still moves at a finite rate
+    gain = walls.servo_gain * walls.area / (k * params.dt)
+    speed = jnp.clip(gain * (walls.target_stress - normal_stress(walls)), -walls.servo_vmax,
+                     walls.servo_vmax)
+    tangential = walls.vel - dot(walls.vel, walls.normal)[:, None] * walls.normal
+    servo_vel = tangential + speed[:, None] * walls.normal
+    return walls._replace(vel=jnp.where(walls.servo[:, None], servo_vel, walls.vel))
+
+
+def advance(walls: Walls, dt) -> Walls:
+    """Move every wall by its velocity over one step."""
+    return walls._replace(point=walls.point + walls.vel * dt)
