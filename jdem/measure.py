@@ -83,3 +83,22 @@ def basic_observables(state: State, params: Params, config: Config):
         out.update(wall_force=state.walls.force, wall_position=state.walls.point,
                    wall_stress=normal_stress(state.walls))
     return out
+
+
+def synchronized_kinetic_energy(state: State, params: Params, config: Config):
+    """Kinetic energy at the same instant as the positions.
+
+    The leapfrog velocities sit half a step behind the positions; this advances
+    them by half a step with the current (damped) forces, v(t) = v(t - dt/2) +
+    F(t) dt / (2m), the velocity-Verlet form.  Use it for energy balances.
+    """
+    from jdem import damping, integrate
+
+    _, force, torque = integrate.forces(state, params, config)
+    p = state.particles
+    force, torque = damping.apply(force, torque, p, params)
+    half = 0.5 * params.dt
+    vel = jnp.where(p.fixed_vel, p.vel, p.vel + force / p.mass[:, None] * half)
+    inertia = p.inertia if torque.ndim == 1 else p.inertia[:, None]
+    angvel = jnp.where(p.fixed_rot, p.angvel, p.angvel + torque / inertia * half)
+    return kinetic_energy(state._replace(particles=p._replace(vel=vel, angvel=angvel)))

@@ -7,7 +7,8 @@ in its own and the adjacent cells (3**d cells), so a build is O(N).  The list
 keeps every pair (i < j) whose gap is below ``Config.skin``; it stays valid
 until some particle has moved (or grown) by half the skin, when it is rebuilt.
 
-Capacities are static (JAX needs fixed shapes): ``Config.capacity`` pairs and
+Capacities are static (JAX needs fixed shapes): C pairs (the length of the
+``Contacts`` arrays) and
 ``Config.max_per_cell`` particles per cell.  A build that finds more records
 how many it needed (``Contacts.n_pairs``, ``Contacts.max_in_cell``); the host
 loop in :mod:`jdem.simulate` sees :func:`overflowed`, re-allocates larger and
@@ -19,6 +20,7 @@ Bonded pairs (see :mod:`jdem.bond`) are excluded: the bond owns them.
 """
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 
@@ -120,6 +122,7 @@ def _sort_pairs(i, j, valid, n):
 
 
 # ----------------------------------------------------------------------------- build
+@functools.partial(jax.jit, static_argnames=("config",))
 def build(contacts: Contacts, particles: Particles, config: Config, bonds=None) -> Contacts:
     """Rebuild the pair list from scratch at the current positions (jit-able).
 
@@ -182,9 +185,9 @@ def overflowed(contacts: Contacts, config: Config):
                    (contacts.max_in_cell > config.max_per_cell))
 
 
-def empty(particles: Particles, config: Config, capacity=None) -> Contacts:
+def empty(particles: Particles, capacity: int) -> Contacts:
     """An unbuilt list of the given capacity (forces a build on first use)."""
-    cap = config.capacity if capacity is None else capacity
+    cap = int(capacity)
     n, d = particles.pos.shape
     dtype = particles.pos.dtype
     return Contacts(
@@ -214,25 +217,35 @@ def grid_for(particles: Particles, *, skin, margin=None, extra_bounds=None):
     return tuple(float(v) for v in lo), shape, cell
 
 
+def dense_capacity(particles: Particles, dim: int) -> int:
+    """Room for a dense packing: ~3 listed pairs per disc, ~7 per sphere."""
+    return int(np.sum(np.asarray(particles.valid))) * (3 if dim == 2 else 7)
+
+
 def allocate(particles: Particles, config: Config, bonds=None, *, slack=1.25,
-             old: Contacts | None = None):
+             old: Contacts | None = None, min_capacity: int | None = None):
     """Size the list for the current positions and build it (host function).
 
-    Returns ``(contacts, config)`` where ``config`` has capacity and max_per_cell
-    grown to fit with ``slack``.  If ``old`` is given its tangential history is kept.
+    Returns ``(contacts, config)``: the list has room for the pairs found times
+    ``slack``, and at least ``min_capacity`` rows (default :func:`dense_capacity`,
+    so that a loose assembly that packs down seldom needs a re-allocation, each
+    of which costs a recompilation); ``config.max_per_cell`` is grown if a cell
+    was too full.  If ``old`` is given its tangential history is kept and its
+    recorded needs count.
     """
-    probe = config.replace(capacity=1)
-    c = build(empty(particles, probe, 1), particles, probe, bonds)
+    if min_capacity is None:
+        min_capacity = dense_capacity(particles, config.dim)
+    c = build(empty(particles, 1), particles, config, bonds)
     need_pairs, need_cell = int(c.n_pairs), int(c.max_in_cell)
     if old is not None:
         need_pairs = max(need_pairs, int(np.max(np.asarray(old.n_pairs))))
         need_cell = max(need_cell, int(np.max(np.asarray(old.max_in_cell))))
-    cap = max(config.capacity, int(math.ceil(need_pairs * slack)) + 16)
-    k = max(config.max_per_cell, need_cell + 2)
-    if k != config.max_per_cell:  # the probe could not see pairs in overfull cells
-        return allocate(particles, config.replace(max_per_cell=k), bonds, slack=slack, old=old)
-    config = config.replace(capacity=cap, max_per_cell=k)
-    start = empty(particles, config) if old is None else _resize(old, cap)
+    if need_cell > config.max_per_cell:  # the probe could not see pairs in overfull cells
+        return allocate(particles, config.replace(max_per_cell=need_cell + 2), bonds,
+                        slack=slack, old=old, min_capacity=min_capacity)
+    cap = max(min_capacity, int(math.ceil(need_pairs * slack)) + 16,
+              0 if old is None else old.i.shape[-1])
+    start = empty(particles, cap) if old is None else _resize(old, cap)
     return build(start, particles, config, bonds), config
 
 
@@ -240,6 +253,8 @@ def _resize(contacts: Contacts, cap: int) -> Contacts:
     """Copy a list into a larger capacity (rows beyond the old ones invalid) and
     reset its need counters."""
     old_cap = contacts.i.shape[0]
+    if cap < old_cap:
+        raise ValueError(f"cannot shrink a neighbour list from {old_cap} to {cap} rows")
     pad = lambda a: jnp.concatenate([a, jnp.zeros((cap - old_cap,) + a.shape[1:], a.dtype)])
     return contacts._replace(i=pad(contacts.i), j=pad(contacts.j), valid=pad(contacts.valid),
                              shear=pad(contacts.shear),

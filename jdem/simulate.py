@@ -139,9 +139,8 @@ def advance(state: State, params: Params, config: Config, n_steps, *, batched=Fa
 # ----------------------------------------------------------------------------- host loop
 def _grow(state: State, config: Config, need_pairs: int, need_cell: int, batched: bool):
     """Re-allocate the neighbour list of ``state`` larger and rebuild it."""
-    cap = max(config.capacity, int(math.ceil(need_pairs * 1.25)) + 16)
-    k = max(config.max_per_cell, need_cell + 2)
-    config = config.replace(capacity=cap, max_per_cell=k)
+    cap = max(state.contacts.i.shape[-1], int(math.ceil(need_pairs * 1.25)) + 16)
+    config = config.replace(max_per_cell=max(config.max_per_cell, need_cell + 2))
 
     def regrow(contacts, particles, bonds):
         return neighbors.build(neighbors._resize(contacts, cap), particles, config, bonds)
@@ -185,7 +184,7 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
     _check_inputs(state, params, config, batched, check_dt)
     observe = observe or basic_observables
     total_records = n_steps // record_every
-    per_chunk = max(1, (chunk_steps or 5000) // record_every)
+    per_chunk = _chunk_records(total_records, max(1, (chunk_steps or 5000) // record_every))
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -218,6 +217,15 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
         if bar is not None:
             bar.close()
     return RunResult(state, config, _stack(history, batched))
+
+
+def _chunk_records(total: int, target: int) -> int:
+    """Records per chunk: the largest divisor of ``total`` not above ``target`` when
+    that is at least half of it (one compiled chunk serves the whole run), else ``target``."""
+    if total <= target:
+        return total
+    best = max(d for d in range(1, target + 1) if total % d == 0)
+    return best if 2 * best >= target else target
 
 
 def _stack(history, batched):

@@ -235,18 +235,19 @@ class Config:
 
     dim               2 (discs) or 3 (spheres)
     contact_model     "linear" (000 eq 4-1..4-3) or "hertz" (000 eq 4-6, 4-8)
-    capacity          C, rows of the neighbour list
     skin              neighbour-list skin [m]; rebuild when a particle moved skin/2
     cell_size         edge of a search cell [m]; >= largest diameter + skin
     grid_origin       lower corner of the search grid [m] (particles outside are
                       clamped into border cells, which stays correct)
     grid_shape        number of cells per axis
     max_per_cell      K, particles a cell can hold
+
+    The neighbour-list capacity C is the length of the ``Contacts`` arrays
+    (a property of the state, not of the configuration).
     """
 
     dim: int = 2
     contact_model: str = "linear"
-    capacity: int = 1024
     skin: float = 1e-3
     cell_size: float = 1.0
     grid_origin: tuple = (0.0, 0.0)
@@ -263,9 +264,8 @@ class Config:
             raise ValueError(
                 f"Config.grid_origin / grid_shape need {self.dim} entries, got "
                 f"{self.grid_origin!r} / {self.grid_shape!r}")
-        for name in ("capacity", "max_per_cell"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"Config.{name} must be >= 1, got {getattr(self, name)!r}")
+        if int(self.max_per_cell) < 1:
+            raise ValueError(f"Config.max_per_cell must be >= 1, got {self.max_per_cell!r}")
         for name in ("skin", "cell_size"):
             v = float(getattr(self, name))
             if not np.isfinite(v) or v <= 0:

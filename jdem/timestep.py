@@ -18,6 +18,9 @@ the true (gravitational) mass.  Not for dynamic problems.
 """
 from __future__ import annotations
 
+import functools
+
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -62,6 +65,7 @@ def _stiffness_sums(state: State, params: Params, config: Config):
     return k_tr, k_rot
 
 
+@functools.partial(jax.jit, static_argnames=("config",))
 def critical_timestep(state: State, params: Params, config: Config):
     """Largest stable step for the current contacts and bonds [s] (scalar).
 

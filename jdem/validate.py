@@ -16,7 +16,7 @@ def _first_bad(a, bad):
     idx = np.argwhere(bad)
     first = tuple(int(k) for k in idx[0]) if idx.size else ()
     value = a[first] if first else a
-    return first, value
+    return first, float(value)
 
 
 def require_finite(name, value):
@@ -25,7 +25,7 @@ def require_finite(name, value):
     if bad.any():
         where, v = _first_bad(a, bad)
         at = f"[{', '.join(map(str, where))}]" if where else ""
-        raise InputError(f"{name}{at} must be finite, got {v!r}")
+        raise InputError(f"{name}{at} must be finite, got {v}")
     return a
 
 
@@ -36,7 +36,7 @@ def require_positive(name, value, allow_zero=False):
         where, v = _first_bad(a, bad)
         at = f"[{', '.join(map(str, where))}]" if where else ""
         cmp = ">= 0" if allow_zero else "> 0"
-        raise InputError(f"{name}{at} must be {cmp}, got {float(v)!r}")
+        raise InputError(f"{name}{at} must be {cmp}, got {v}")
     return a
 
 
@@ -46,7 +46,7 @@ def require_range(name, value, lo, hi):
     if bad.any():
         where, v = _first_bad(a, bad)
         at = f"[{', '.join(map(str, where))}]" if where else ""
-        raise InputError(f"{name}{at} must lie in [{lo}, {hi}], got {float(v)!r}")
+        raise InputError(f"{name}{at} must lie in [{lo}, {hi}], got {v}")
     return a
 
 

@@ -42,7 +42,7 @@ def build_state(walls=True, n_bonds=3):
     state = State(particles=parts, contacts=contacts, walls=w, bonds=empty_bonds(2, n_bonds),
                   step=jnp.int32(12), time=jnp.float64(1.0 / 3.0), first_bad_step=jnp.int32(-1))
     params = make_params(2, n_materials=2, kn=[1e8, 2e8], gravity=[0.0, -9.81])
-    config = Config(dim=2, contact_model="hertz", capacity=c, skin=1e-3, cell_size=0.1,
+    config = Config(dim=2, contact_model="hertz", skin=1e-3, cell_size=0.1,
                     grid_origin=(-0.5, 0.25), grid_shape=(10, 12), max_per_cell=4)
     return state, params, config
 

@@ -1,0 +1,339 @@
+"""Linked-bar strain-softening bond (002 §1, eq 1-13, 16).
+
+A bond joins two particles 1 = ``i`` and 2 = ``j`` by a bar of length
+L = R1 + R2 and cross-section A_c (002 eq 1).  Forces and moments are updated
+incrementally and explicitly (002 eq 3, 4); the trial normal force is limited by
+a tension cut-off with linear softening of the tensile strength (002 eq 6, 7) and
+the trial shear force by a Mohr-Coulomb criterion with linear softening of the
+cohesion (002 eq 8, 9).  When the tensile strength or the cohesion reaches zero
+the bond is broken and behaves as a compression-only frictional contact.  Once
+inequality 11 is met the bond stops transmitting moments.
+
+Only evolving quantities live in :class:`jdem.state.Bonds`; the geometry and
+stiffnesses (002 eq 1, 2, 5) are recomputed from the radii and ``Params`` by
+:func:`bond_geometry` so that they stay differentiable.
+
+Sign conventions (see :mod:`jdem.state`): F_n > 0 is compression; ``shear_force``,
+``twist`` and ``bend`` are the shear force and moments acting on particle 1
+(``i``); ``u_n`` is the total opening (separation positive) and ``u_s`` the total
+tangential displacement of 1 relative to 2.
+"""
+from __future__ import annotations
+
+import itertools
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from jdem.kinematics import (cross_r_f, cross_w_r, dot, rotate_into_plane, safe_norm,
+                             segment_add, split_rotation, unit)
+from jdem.state import Bonds, Particles, Params, empty_bonds
+
+Array = jnp.ndarray
+
+
+def _den(x):
+    """A denominator that is never zero (zeros replaced by 1); pair with a ``where``
+    on the result so that masked rows and their gradients stay finite."""
+    return jnp.where(x != 0, x, jnp.ones_like(x))
+
+
+class BondGeometry(NamedTuple):
+    """Per-bond geometry and stiffness (002 eq 1, 2, 5); zero for invalid rows.
+
+    area    (B,)  A_c [m^2] (2D: min(2R1, 2R2) x 1 m; 3D: pi min(R1, R2)^2)
+    length  (B,)  L = R1 + R2 [m]
+    kn      (B,)  K_n = E A_c / L [N/m]
+    ks      (B,)  K_s = G A_c / L [N/m], G = E / (2 (1 + nu))
+    J       (B,)  polar moment pi min(2R1, 2R2)^4 / 32 [m^4] (used in 2D and 3D)
+    I       (B,)  second moment J / 2 [m^4]
+    r_min   (B,)  min(R1, R2) [m] (outer fibre distance of ineq 11)
+    """
+
+    area: Array
+    length: Array
+    kn: Array
+    ks: Array
+    J: Array
+    I: Array
+    r_min: Array
+
+
+def _shear_modulus(params: Params):
+    return params.bond_youngs / (2.0 * (1.0 + params.bond_poisson))
+
+
+def bond_geometry(bonds: Bonds, particles: Particles, params: Params, dim: int) -> BondGeometry:
+    """Cross-section, length, stiffnesses and moments of area of every bond row."""
+    valid = bonds.valid
+    r1 = particles.radius[bonds.i]
+    r2 = particles.radius[bonds.j]
+    r_min = jnp.minimum(r1, r2)
+    if dim == 2:
+        area = 2.0 * r_min                       # 002 eq 1 (2D, unit thickness)
+    else:
+        area = jnp.pi * r_min ** 2               # 002 eq 1 (3D)
+    length = r1 + r2
+    e_mod = params.bond_youngs
+    g_mod = _shear_modulus(params)
+    kn = e_mod * area / _den(length)             # 002 eq 2
+    ks = g_mod * area / _den(length)
+    polar = jnp.pi * (2.0 * r_min) ** 4 / 32.0   # 002 eq 5
+    inertia = 0.5 * polar
+    z = lambda a: jnp.where(valid, a, jnp.zeros_like(a))
+    return BondGeometry(area=z(area), length=z(length), kn=z(kn), ks=z(ks), J=z(polar),
+                        I=z(inertia), r_min=z(r_min))
+
+
+def create_bonds(particles: Particles, dim: int, *, gap_tolerance: float,
+                 capacity: int | None = None) -> Bonds:
+    """Bond every pair of valid particles whose gap |x_i - x_j| - R_i - R_j is at
+    most ``gap_tolerance`` [m] (overlaps have a negative gap).
+
+    Host-side (NumPy), O(N) with a uniform cell grid of edge 2 max(R) + tolerance.
+    Rows are i < j, sorted by (i, j); every evolving field starts at zero and
+    ``break_step`` at -1.  ``capacity`` (default: the number found) pads with
+    invalid rows; a capacity below the number found raises ``ValueError``.
+    """
+    pos = np.asarray(particles.pos, dtype=np.float64)
+    rad = np.asarray(particles.radius, dtype=np.float64)
+    valid = np.asarray(particles.valid, dtype=bool)
+    if pos.ndim != 2 or pos.shape[1] != dim:
+        raise ValueError(f"particles.pos must have shape (N, {dim}), got {pos.shape}")
+    tol = float(gap_tolerance)
+    if not np.isfinite(tol):
+        raise ValueError(f"gap_tolerance must be finite, got {gap_tolerance!r}")
+
+    idx = np.nonzero(valid)[0]
+    p, r = pos[idx], rad[idx]
+    n = idx.size
+    pairs_i, pairs_j = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    reach = 2.0 * (r.max() if n else 0.0) + max(tol, 0.0)   # largest bondable centre distance
+    if n >= 2 and reach > 0:
+        cell = np.floor((p - p.min(axis=0)) / reach).astype(np.int64) + 1  # +1: neighbours >= 0
+        shape = cell.max(axis=0) + 2
+        strides = np.ones(dim, np.int64)
+        for a in range(dim - 2, -1, -1):
+            strides[a] = strides[a + 1] * shape[a + 1]
+        if float(np.prod(shape.astype(np.float64))) > 2.0 ** 62:
+            raise ValueError("create_bonds: particle cloud too sparse for the cell grid "
+                             f"({shape.tolist()} cells of {reach} m)")
+        key = cell @ strides
+        order = np.argsort(key, kind="stable")
+        skey = key[order]
+        arange = np.arange(n)
+        for off in itertools.product((-1, 0, 1), repeat=dim):
+            nkey = key + np.asarray(off, np.int64) @ strides
+            start = np.searchsorted(skey, nkey, side="left")
+            count = np.searchsorted(skey, nkey, side="right") - start
+            tot = int(count.sum())
+            if tot == 0:
+                continue
+            a = np.repeat(arange, count)
+            within = np.arange(tot) - np.repeat(np.cumsum(count) - count, count)
+            b = order[np.repeat(start, count) + within]
+            keep = a < b
+            a, b = a[keep], b[keep]
+            gap = np.linalg.norm(p[b] - p[a], axis=1) - r[a] - r[b]
+            keep = gap <= tol
+            pairs_i.append(a[keep])
+            pairs_j.append(b[keep])
+    bi = idx[np.concatenate(pairs_i)] if n else np.zeros(0, np.int64)
+    bj = idx[np.concatenate(pairs_j)] if n else np.zeros(0, np.int64)
+    srt = np.lexsort((bj, bi))
+    bi, bj = bi[srt], bj[srt]
+    found = bi.size
+    capacity = found if capacity is None else int(capacity)
+    if capacity < found:
+        raise ValueError(f"create_bonds: capacity {capacity} is smaller than the number of "
+                         f"bonds found {found}")
+    bonds = empty_bonds(dim, capacity, dtype=particles.pos.dtype)
+    ii = np.zeros(capacity, np.int32)
+    jj = np.zeros(capacity, np.int32)
+    ok = np.zeros(capacity, bool)
+    ii[:found], jj[:found], ok[:found] = bi, bj, True
+    return bonds._replace(i=jnp.asarray(ii), j=jnp.asarray(jj), valid=jnp.asarray(ok))
+
+
+def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, step):
+    """One explicit incremental update of every bond (002 eq 3-13).
+
+    Arguments: ``bonds`` (capacity B), ``particles`` (capacity N; ``vel`` and
+    ``angvel`` are the velocities over the step), ``params`` (``dt`` and the
+    ``bond_*`` fields), ``dim`` (2 or 3, static) and ``step`` (int, the current
+    step number, stored in ``break_step`` when a bond breaks).
+
+    Returns ``(new_bonds, force (N, d) [N], torque (N,) or (N, 3) [N m])``.
+    Invalid rows contribute nothing and keep zero history.
+
+    A bond whose tensile strength or cohesion reaches zero in this step is flagged
+    broken now, but its forces for this step are the softened (~0) bonded values;
+    from the next step it is a frictional contact: F_n = K_n max(0, -u_n)
+    (compression only, re-engaging at the bonded separation), |F_s| <= F_n tan(phi),
+    no tension, cohesion or moments.
+
+    Inequality 11 is checked with this step's corrected forces and trial moments
+    (old moments rotated into the plane ⊥ n plus the eq 4 increment); when it is
+    met, ``moment_lost`` is set for good and the moments are zero from this very
+    step on, so a moment beyond the criterion is never transmitted.
+    """
+    valid = bonds.valid
+    i, j = bonds.i, bonds.j
+    geo = bond_geometry(bonds, particles, params, dim)
+    area, length, kn, ks = geo.area, geo.length, geo.kn, geo.ks
+    area_d, length_d = _den(area), _den(length)
+    dt = params.dt
+    e_mod = params.bond_youngs
+    g_mod = _shear_modulus(params)
+    t0, c0 = params.bond_tensile, params.bond_cohesion
+    tanphi = jnp.tan(params.bond_friction_angle)
+    eps_lim, gam_lim = params.bond_tensile_strain, params.bond_shear_strain
+    vb = lambda a: valid.reshape(valid.shape + (1,) * (a.ndim - 1))   # broadcast mask
+    z = lambda a: jnp.where(vb(a), a, jnp.zeros_like(a))
+
+    # Geometry: n from 1 to 2; r1, r2 from the centroids to the contact point on the
+    # bar, which divides the centre line in the ratio R1 : R2 (002 Fig. 3).
+    x1, x2 = particles.pos[i], particles.pos[j]
+    dx = x2 - x1
+    n, _ = unit(dx)
+    r1 = (particles.radius[i] / length_d)[:, None] * dx
+    r2 = -(particles.radius[j] / length_d)[:, None] * dx
+
+    # 002 eq 12: displacement increment of 1 relative to 2 at the contact point.
+    w1, w2 = particles.angvel[i], particles.angvel[j]
+    v_rel = (particles.vel[i] + cross_w_r(w1, r1)) - (particles.vel[j] + cross_w_r(w2, r2))
+    du = v_rel * dt
+    du_n = dot(du, n)
+    d_open = -du_n                                   # Δu_n, opening positive
+    d_us = du - du_n[:, None] * n                    # Δu_s, tangential
+
+    # Turn the stored tangential history into the current plane ⊥ n, then add up
+    # the totals u_n, u_s.
+    fs_old = rotate_into_plane(bonds.shear_force, n)
+    u_s = rotate_into_plane(bonds.u_s, n) + d_us
+    u_n = bonds.u_n + d_open
+    us_mag = safe_norm(u_s)
+
+    # ---- intact bond -------------------------------------------------------
+    # 002 eq 3: incremental trial forces (F_n compression positive; F_s on 1).
+    fn_tr = bonds.normal_force - kn * d_open
+    fs_tr = fs_old - ks[:, None] * d_us
+    # 002 eq 10: current strengths from the stored damage.
+    t_old = t0 * (1.0 - bonds.alpha)
+    c_old = c0 * (1.0 - bonds.beta)
+    # 002 eq 6-7: tension cut-off with linear softening of T.
+    tens = -fn_tr >= t_old * area
+    fn_b = jnp.where(tens, -t_old * area, fn_tr)
+    eps_p = u_n / length_d - t_old / e_mod
+    alpha_c = jnp.where(eps_lim > 0, eps_p / _den(eps_lim), 1.0)   # eps_lim = 0: brittle
+    alpha_b = jnp.where(tens, jnp.clip(jnp.maximum(bonds.alpha, alpha_c), 0.0, 1.0), bonds.alpha)
+    # 002 eq 8-9: Mohr-Coulomb with the corrected F_n, linear softening of c.
+    strength = jnp.maximum(fn_b * tanphi + c_old * area, 0.0)
+    fs_mag = safe_norm(fs_tr)
+    shear = fs_mag >= strength
+    scale = jnp.where(fs_mag > 0, strength / _den(fs_mag), 0.0)
+    fs_b = jnp.where(shear[:, None], fs_tr * scale[:, None], fs_tr)
+    gam_p = us_mag / length_d - (c_old + fn_b * tanphi / area_d) / g_mod
+    beta_c = jnp.where(gam_lim > 0, gam_p / _den(gam_lim), 1.0)    # gamma_lim = 0: brittle
+    beta_b = jnp.where(shear, jnp.clip(jnp.maximum(bonds.beta, beta_c), 0.0, 1.0), bonds.beta)
+
+    # ---- broken bond: compression-only frictional contact -------------------
+    fn_f = kn * jnp.maximum(0.0, -u_n)
+    fs_f_tr = fs_old - ks[:, None] * d_us
+    f_lim = fn_f * tanphi
+    fs_f_mag = safe_norm(fs_f_tr)
+    slip = fs_f_mag > f_lim
+    fs_f = jnp.where(slip[:, None], fs_f_tr * (f_lim / _den(fs_f_mag))[:, None], fs_f_tr)
+
+    was_broken = bonds.broken
+    fn = z(jnp.where(was_broken, fn_f, fn_b))
+    fs = z(jnp.where(was_broken[:, None], fs_f, fs_b))
+    alpha = z(jnp.where(was_broken, bonds.alpha, alpha_b))
+    beta = z(jnp.where(was_broken, bonds.beta, beta_b))
+
+    # A bond breaks when T or c reaches zero; recorded once, effective next step.
+    new_break = valid & ~was_broken & ((alpha >= 1.0) | (beta >= 1.0))
+    broken = valid & (was_broken | new_break)
+    break_mode = jnp.where(new_break, jnp.where(alpha >= 1.0, 1, 2).astype(jnp.int32),
+                           bonds.break_mode)
+    break_step = jnp.where(new_break, jnp.asarray(step, jnp.int32), bonds.break_step)
+
+    # ---- moments -------------------------------------------------------------
+    # 002 eq 4: relative rotation increment split into twist (along n) and bending.
+    dth_n, dth_s = split_rotation((w1 - w2) * dt, n)
+    bend_old = rotate_into_plane(bonds.bend, n) if dim == 3 else bonds.bend
+    twist_tr = bonds.twist - ks * geo.J * dth_n / area_d
+    if dim == 3:
+        bend_tr = bend_old - (kn * geo.I / area_d)[:, None] * dth_s
+        bend_mag = safe_norm(bend_tr)
+    else:
+        bend_tr = bend_old - kn * geo.I * dth_s / area_d
+        bend_mag = jnp.abs(bend_tr)
+    # 002 ineq 11 (with this step's corrected forces and trial moments): the bond
+    # stops transmitting moments for good.
+    sig_n = fn_b / area_d
+    ineq11 = ((-sig_n + bend_mag / _den(geo.I) * geo.r_min >= t0)
+              | (safe_norm(fs_b) / area_d + jnp.abs(twist_tr) / _den(geo.J) * geo.r_min
+                 >= sig_n * tanphi + c0))
+    moment_lost = valid & (bonds.moment_lost | (~was_broken & ineq11))
+    carry_m = valid & ~was_broken & ~moment_lost
+    twist = jnp.where(carry_m, twist_tr, 0.0)
+    bend = jnp.where(carry_m.reshape(carry_m.shape + (1,) * (bend_tr.ndim - 1)), bend_tr, 0.0)
+
+    # ---- back onto the particles (002 eq 13) ----------------------------------
+    f1 = z(-fn[:, None] * n + fs)                      # force on particle 1
+    m1 = twist[:, None] * n + bend if dim == 3 else bend
+    t1 = cross_r_f(r1, f1) + m1
+    t2 = cross_r_f(r2, -f1) - m1
+    n_part = particles.pos.shape[0]
+    force = segment_add(f1, i, n_part) + segment_add(-f1, j, n_part)
+    torque = segment_add(z(t1), i, n_part) + segment_add(z(t2), j, n_part)
+
+    new_bonds = bonds._replace(
+        normal_force=fn, shear_force=fs, twist=twist, bend=bend, u_n=z(u_n), u_s=z(u_s),
+        alpha=alpha, beta=beta, moment_lost=moment_lost, broken=broken,
+        break_mode=break_mode, break_step=break_step)
+    return new_bonds, force, torque
+
+
+def damage(bonds: Bonds) -> dict:
+    """Damage factors of 002 eq 10: ``alpha`` = 1 - T/T0, ``beta`` = 1 - c/c0 and
+    ``chi`` = 1 - (1 - alpha)(1 - beta); zero for invalid rows."""
+    alpha = jnp.where(bonds.valid, bonds.alpha, 0.0)
+    beta = jnp.where(bonds.valid, bonds.beta, 0.0)
+    return {"alpha": alpha, "beta": beta, "chi": 1.0 - (1.0 - alpha) * (1.0 - beta)}
+
+
+def bond_strain_energy(bonds: Bonds, particles: Particles, params: Params, dim: int):
+    """Bond strain energy L_p [J] (2D: per metre of thickness), 002 eq 16:
+
+        L_p = sum over intact valid bonds of (F_n (-u_n) - F_s . u_s) / 2
+
+    with the signs of this module (F_n compression positive, u_n opening positive;
+    F_s acts on particle 1 and u_s is the displacement of 1 relative to 2), so that
+    both terms are >= 0 for an elastic bond, where the sum equals
+    F_n^2 / (2 K_n) + |F_s|^2 / (2 K_s).  Twisting and bending energies are
+    omitted, as in the seed.  Broken bonds are not counted.
+    (``particles``, ``params`` and ``dim`` are accepted for a uniform signature.)
+    """
+    del particles, params, dim
+    live = bonds.valid & ~bonds.broken
+    e = 0.5 * (-bonds.normal_force * bonds.u_n - dot(bonds.shear_force, bonds.u_s))
+    return jnp.sum(jnp.where(live, e, 0.0))
+
+
+def bond_stats(bonds: Bonds) -> dict:
+    """Counts: ``n_bonds`` (valid rows), ``n_broken``, ``n_tension`` / ``n_shear``
+    (broken in mode 1 / 2) and ``fracture_degree`` = n_broken / n_bonds (0 if none)."""
+    valid = bonds.valid
+    broken = valid & bonds.broken
+    n_bonds = jnp.sum(valid)
+    n_broken = jnp.sum(broken)
+    return {
+        "n_bonds": n_bonds,
+        "n_broken": n_broken,
+        "n_tension": jnp.sum(broken & (bonds.break_mode == 1)),
+        "n_shear": jnp.sum(broken & (bonds.break_mode == 2)),
+        "fracture_degree": jnp.where(n_bonds > 0, n_broken / jnp.maximum(n_bonds, 1), 0.0),
+    }

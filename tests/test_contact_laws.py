@@ -1,0 +1,140 @@
+"""Contact laws against analytic values (000 §4.2, eq 4-1..4-9)."""
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jdem
+from jdem import contact, timestep
+
+
+def _collide(pos, radius, vel, params, model, n_steps, density=2500.0):
+    p = jdem.make_particles(pos, radius, density=density, vel=vel)
+    state, cfg = jdem.make_state(p, contact_model=model, skin=0.2 * min(radius))
+
+    def obs(s, prm, c):
+        gap = jnp.linalg.norm(s.particles.pos[1] - s.particles.pos[0]) - s.particles.radius.sum()
+        return dict(t=s.time, gap=gap, vel=s.particles.vel)
+
+    return jdem.run(state, params, cfg, n_steps, record_every=1, observe=obs, progress=False)
+
+
+def test_two_disc_linear_collision_duration_and_restitution():
+    r, rho, kn, v = 0.01, 2500.0, 1e6, 0.5
+    m = rho * np.pi * r**2
+    tc = np.pi * np.sqrt((m / 2) / kn)  # half period of the relative oscillator
+    dt = tc / 1000
+    params = jdem.make_params(dim=2, kn=kn, ks=kn, friction=0.3, dt=dt)
+    res = _collide([[0, 0], [2 * r + 2e-5, 0]], [r, r], [[v, 0], [-v, 0]], params, "linear", 3000)
+    h = res.history
+    t_touch = h["t"][h["gap"] < 0]
+    duration = t_touch[-1] - t_touch[0] + dt
+    assert abs(duration / tc - 1) < 0.01
+    v_after = h["vel"][-1]
+    restitution = (v_after[1, 0] - v_after[0, 0]) / (2 * v)
+    assert abs(restitution - 1) < 1e-6
+    assert abs(v_after[:, 1]).max() < 1e-12  # head-on: no sideways motion
+
+
+def test_two_sphere_hertz_collision_duration():
+    r, rho, e, nu, v = 0.01, 2500.0, 1e9, 0.25, 0.5
+    m = rho * 4 / 3 * np.pi * r**3
+    m_eff, r_eff = m / 2, r / 2
+    h = 2 * e / (3 * (1 - nu**2)) * np.sqrt(r_eff)  # 000 eq 4-6
+    # Hertz impact: max overlap from energy balance, duration 2.9432 * d_max / v_rel
+    v_rel = 2 * v
+    d_max = (5 * m_eff * v_rel**2 / (4 * h)) ** 0.4
+    tc = 2.9432 * d_max / v_rel
+    params = jdem.make_params(dim=3, youngs=e, poisson=nu, friction=0.3, dt=tc / 1000)
+    res = _collide([[0, 0, 0], [2 * r + 1e-5, 0, 0]], [r, r], [[v, 0, 0], [-v, 0, 0]],
+                   params, "hertz", 3000)
+    hist = res.history
+    t_touch = hist["t"][hist["gap"] < 0]
+    duration = t_touch[-1] - t_touch[0] + tc / 1000
+    assert abs(duration / tc - 1) < 0.02
+    assert abs(-hist["gap"].min() / d_max - 1) < 0.01
+
+
+def test_mixed_stiffness_is_harmonic_mean():
+    params = jdem.make_params(dim=2, n_materials=2, kn=[1e6, 3e6], ks=[1e5, 2e5], friction=0.1)
+    fn, kn, kt = contact.normal_law(jnp.asarray(1e-4), jnp.asarray(0.005), jnp.asarray(0),
+                                    jnp.asarray(1), params, "linear")
+    assert np.isclose(kn, 2 * 1e6 * 3e6 / 4e6)  # 000 eq 4-9
+    assert np.isclose(kt, 2 * 1e5 * 2e5 / 3e5)
+    assert np.isclose(fn, kn * 1e-4)
+
+
+def test_hertz_tangential_stiffness_matches_eq_4_8():
+    params = jdem.make_params(dim=3, youngs=5e9, poisson=0.3)
+    overlap, r_eff = 2e-5, 0.004
+    fn, kn, kt = contact.normal_law(jnp.asarray(overlap), jnp.asarray(r_eff), jnp.asarray(0),
+                                    jnp.asarray(0), params, "hertz")
+    e, nu = 5e9, 0.3
+    h = 2 * e / (3 * (1 - nu**2)) * np.sqrt(r_eff)
+    assert np.isclose(fn, h * overlap**1.5, rtol=1e-12)
+    assert np.isclose(kn, 1.5 * h * overlap**0.5, rtol=1e-12)
+    kt_seed = (e / (1 + nu)) ** (2 / 3) * (12 * (1 - nu) * r_eff * fn) ** (1 / 3) / (2 - nu)
+    assert np.isclose(kt, kt_seed, rtol=1e-12)
+
+
+def _first_position(state, params, config):
+    return dict(pos=state.particles.pos[0])
+
+
+def _slide_on_incline(dim, slope_deg, friction_deg, steps=8000):
+    """A non-rotating particle resting on an inclined wall under gravity.
+
+    Returns its displacement down the slope at the end, the analytic sliding
+    displacement, and the creep between the means of
+    the second and last quarter of the run (the elastic tangential spring
+    oscillates undamped, so single samples wobble; a stuck particle's mean
+    position does not move).
+    """
+    r, rho, kn, g = 0.01, 2500.0, 1e6, 9.81
+    th = np.deg2rad(slope_deg)
+    normal = np.zeros(dim)
+    normal[0], normal[1] = -np.sin(th), np.cos(th)  # wall through the origin, tilted by th
+    m = rho * (np.pi * r**2 if dim == 2 else 4 / 3 * np.pi * r**3)
+    sink = m * g * np.cos(th) / kn  # static overlap under the normal load
+    centre = normal * (r - sink)
+    fixed_rot = [True] if dim == 2 else [[True, True, True]]
+    p = jdem.make_particles([centre], [r], density=rho, fixed_rot=fixed_rot)
+    walls = jdem.make_walls([np.zeros(dim)], [normal], n_particles=1)
+    grav = np.zeros(dim)
+    grav[1] = -g
+    dt = 0.05 * np.sqrt(m / kn)
+    mu = np.tan(np.deg2rad(friction_deg))
+    params = jdem.make_params(dim=dim, kn=kn, ks=kn, friction=mu, dt=dt, gravity=grav)
+    state, cfg = jdem.make_state(p, walls=walls)
+    down = np.zeros(dim)
+    down[0], down[1] = -np.cos(th), -np.sin(th)
+
+    res = jdem.run(state, params, cfg, steps, record_every=10, observe=_first_position,
+                   progress=False)
+    x = (res.history["pos"] - centre) @ down
+    q = len(x) // 4
+    creep = x[3 * q:].mean() - x[q:2 * q].mean()
+    # analytic spring-slider: the tangential spring (k_t) loads from zero while the
+    # particle accelerates at g sin; it slips once k_t x = mu m g cos, with speed v0,
+    # then slides as a Coulomb block at a = g (sin - mu cos)
+    t = steps * dt
+    w = np.sqrt(kn / m)
+    x_slip = mu * m * g * np.cos(th) / kn
+    amp = m * g * np.sin(th) / kn
+    t_slip = np.arccos(1 - x_slip / amp) / w
+    v0 = amp * w * np.sin(w * t_slip)
+    a = g * (np.sin(th) - mu * np.cos(th))
+    ts = t - t_slip
+    return x[-1], x_slip + v0 * ts + 0.5 * a * ts**2, creep
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_particle_on_incline_slides_iff_slope_exceeds_friction_angle(dim):
+    phi = 25.0
+    for slope in (phi - 5, phi - 1):
+        x, _, creep = _slide_on_incline(dim, slope, phi)
+        assert abs(x) < 1e-4  # a hundredth of the radius: elastic spring, no sliding
+        assert abs(creep) < 1e-8
+    for slope in (phi + 1, phi + 5):
+        x, expected, creep = _slide_on_incline(dim, slope, phi)
+        assert abs(x / expected - 1) < 0.01  # spring-slider solution
+        assert creep > 1e-4

@@ -1,0 +1,254 @@
+"""The dynamic-relaxation engine: energy, settling, servo walls, capacities,
+restarts, batching, gradients, bad input."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jdem
+from jdem import measure, neighbors, timestep
+from jdem.io import CorruptFileError, load_run, save_run
+
+
+def _box_walls(lo, hi, n, **kw):
+    """Four walls of the box [lo, hi] (2D), normals pointing inwards."""
+    pts = [[lo[0], 0], [hi[0], 0], [0, lo[1]], [0, hi[1]]]
+    nrm = [[1, 0], [-1, 0], [0, 1], [0, -1]]
+    return jdem.make_walls(pts, nrm, n_particles=n, **kw)
+
+
+def _loose_discs(nx, ny, r=1e-3, seed=0, gap=0.3, jitter=0.1):
+    """Discs on a jittered grid with radii in [0.8 r, 1.2 r] (touching when gap < 0)."""
+    rng = np.random.default_rng(seed)
+    s = 2 * 1.2 * r * (1 + gap)
+    xy = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij"), -1).reshape(-1, 2)
+    pos = (xy + 0.5) * s + rng.uniform(-jitter, jitter, size=xy.shape) * r
+    rad = rng.uniform(0.8 * r, 1.2 * r, size=len(pos))
+    return pos, rad, (nx * s, ny * s)
+
+
+# ----------------------------------------------------------------------------- energy
+def _energy(state, params, config):
+    return dict(kinetic=measure.synchronized_kinetic_energy(state, params, config),
+                elastic=measure.contact_energy(state, params, config))
+
+
+def test_undamped_elastic_packing_conserves_energy():
+    """Relative total-energy drift below 1e-3 over 10,000 steps at 0.2 x critical."""
+    pos, rad, (w, h) = _loose_discs(8, 8, gap=-0.2, seed=1)  # slightly overlapping
+    rng = np.random.default_rng(2)
+    vel = rng.normal(0, 0.01, size=pos.shape)
+    p = jdem.make_particles(pos, rad, vel=vel)
+    walls = _box_walls((0, 0), (w, h), len(pos))
+    params = jdem.make_params(dim=2, kn=1e5, ks=1e5, friction=0.0)
+    state, cfg = jdem.make_state(p, walls=walls)
+    crit = float(timestep.critical_timestep(state, params, cfg))
+    params = params._replace(dt=jnp.asarray(0.2 * crit))
+    res = jdem.run(state, params, cfg, 10_000, record_every=50, observe=_energy, progress=False)
+    e = res.history["kinetic"] + res.history["elastic"]
+    assert res.history["elastic"].max() > 0.1 * e[0]  # contacts really work
+    assert int(res.state.contacts.n_builds) > 2  # and the list was rebuilt on the way
+    k = len(e) // 10
+    drift = abs(e[-k:].mean() - e[:k].mean()) / e[0]
+    assert drift < 1e-3
+    assert np.abs(e / e[0] - 1).max() < 1e-2  # no excursion either
+
+
+# ----------------------------------------------------------------------------- deposition
+def _weight_observe(state, params, config):
+    return dict(kinetic=measure.kinetic_energy(state), wall_force=state.walls.force)
+
+
+def test_gravity_deposition_settles_and_floor_carries_the_weight():
+    pos, rad, (w, h) = _loose_discs(25, 40, seed=4, jitter=0.35)
+    n = len(pos)
+    g = 9.81
+    p = jdem.make_particles(pos, rad)
+    # frictionless walls (material 1): the floor alone carries the weight
+    walls = _box_walls((0, 0), (w, 2 * h), n, material=1)
+    # local damping for the quasi-static settling, contact dashpots for the impacts and
+    # a little mass-proportional damping for rattlers spinning freely in their cages
+    params = jdem.make_params(dim=2, n_materials=2, kn=1e5, ks=1e5, friction=[0.5, 0.0],
+                              gravity=[0.0, -g], local_damping=0.7, contact_damping=0.3,
+                              viscous_damping=2.0)
+    state, cfg = jdem.make_state(p, walls=walls)
+    crit = float(timestep.nominal_critical_timestep(p, params, cfg))
+    params = params._replace(dt=jnp.asarray(timestep.recommended(crit)))
+    res = jdem.run(state, params, cfg, 40_000, record_every=1000, observe=_weight_observe,
+                   progress=False)
+    ke = res.history["kinetic"]
+    assert ke[-1] < 1e-6 * ke.max()
+    weight = float(np.sum(np.asarray(p.gravity_mass)) * g)
+    floor = -res.history["wall_force"][-1, 2, 1]  # particles push the floor down (-y)
+    assert abs(floor / weight - 1) < 0.01
+    assert res.state.contacts.i.shape[0] > state.contacts.i.shape[0]  # list grew as it packed
+
+
+# ----------------------------------------------------------------------------- capacity
+def _positions(state, params, config):
+    return dict(pos=state.particles.pos, vel=state.particles.vel)
+
+
+def _small_fall(seed=5, nx=6, ny=10):
+    pos, rad, (w, h) = _loose_discs(nx, ny, seed=seed)
+    p = jdem.make_particles(pos, rad)
+    walls = _box_walls((0, 0), (w, 2 * h), len(pos))
+    params = jdem.make_params(dim=2, kn=1e5, ks=1e5, friction=0.4, gravity=[0.0, -9.81],
+                              local_damping=0.1, dt=2e-5)
+    state, cfg = jdem.make_state(p, walls=walls)
+    return state, params, cfg
+
+
+def test_too_small_neighbour_capacity_gives_the_same_trajectory():
+    state, params, cfg = _small_fall()
+    ample, cfg_ample = neighbors.allocate(state.particles, cfg, min_capacity=2000)
+    tight_cfg = cfg.replace(max_per_cell=1)
+    tight = neighbors.build(neighbors.empty(state.particles, 3), state.particles, tight_cfg)
+    a = jdem.run(state._replace(contacts=ample), params, cfg_ample, 6000, record_every=200,
+                 observe=_positions, progress=False, chunk_steps=1000)
+    b = jdem.run(state._replace(contacts=tight), params, tight_cfg, 6000, record_every=200,
+                 observe=_positions, progress=False, chunk_steps=1000)
+    assert b.state.contacts.i.shape[0] > 3 and b.config.max_per_cell > 1  # it re-allocated
+    assert int(a.state.contacts.n_pairs) > 10
+    np.testing.assert_allclose(b.history["pos"], a.history["pos"], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(b.history["vel"], a.history["vel"], rtol=0, atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- restart
+def test_restart_from_hdf5_continues_bit_for_bit(tmp_path):
+    state, params, cfg = _small_fall(seed=6)
+    whole = jdem.run(state, params, cfg, 4000, record_every=100, observe=_positions,
+                     progress=False, chunk_steps=1000)
+    half = jdem.run(state, params, cfg, 2000, record_every=100, observe=_positions,
+                    progress=False, chunk_steps=1000)
+    path = save_run(tmp_path / "half.h5", state=half.state, params=params, config=half.config,
+                    history=half.history)
+    back = load_run(path)
+    rest = jdem.run(back.state, back.params, back.config, 2000, record_every=100,
+                    observe=_positions, progress=False, chunk_steps=1000)
+    for a, b in zip(jax.tree_util.tree_leaves(whole.state), jax.tree_util.tree_leaves(rest.state)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(whole.history["pos"][20:], rest.history["pos"])
+
+
+# ----------------------------------------------------------------------------- batching
+def test_vmap_over_friction_matches_separate_runs():
+    state, params, cfg = _small_fall(seed=7)
+    mus = [0.0, 0.2, 0.5, 1.0]
+    batch_state = jdem.broadcast_batch(state, 4)
+    batch_params = jdem.broadcast_batch(params, 4)._replace(
+        friction=jnp.asarray(mus)[:, None] * jnp.ones_like(params.friction))
+    batched = jdem.run(batch_state, batch_params, cfg, 3000, record_every=100, observe=_positions,
+                       progress=False, batched=True)
+    assert batched.history["pos"].shape[:2] == (4, 30)
+    finals = []
+    for k, mu in enumerate(mus):
+        one = jdem.run(state, params._replace(friction=jnp.full_like(params.friction, mu)), cfg,
+                       3000, record_every=100, observe=_positions, progress=False)
+        # identical up to round-off (the vectorised code may fuse differently), which
+        # the collisions amplify to ~1e-11 m by the end
+        np.testing.assert_allclose(batched.history["pos"][k], one.history["pos"], rtol=0, atol=1e-10)
+        finals.append(one.history["pos"][-1])
+    assert np.abs(finals[0] - finals[3]).max() > 1e-6  # friction really matters here
+
+
+# ----------------------------------------------------------------------------- servo wall
+def _stress_observe(state, params, config):
+    from jdem.walls import normal_stress
+
+    return dict(stress=normal_stress(state.walls), kinetic=measure.kinetic_energy(state))
+
+
+def test_servo_wall_holds_target_stress():
+    pos, rad, (w, h) = _loose_discs(10, 10, seed=8, gap=0.05)
+    n = len(pos)
+    target = 2e5  # Pa on a wall of length w and unit thickness
+    # frictionless walls (material 1), so the side walls carry no vertical load
+    walls = _box_walls((0, 0), (w, h * 1.02), n, servo=[False, False, False, True],
+                       target_stress=[0, 0, 0, target], area=[h, h, w, w], servo_vmax=0.5,
+                       servo_gain=0.3, material=1)
+    p = jdem.make_particles(pos, rad)
+    params = jdem.make_params(dim=2, n_materials=2, kn=1e6, ks=1e6, friction=[0.3, 0.0],
+                              local_damping=0.7, dt=1e-5)
+    state, cfg = jdem.make_state(p, walls=walls)
+    res = jdem.run(state, params, cfg, 10_000, record_every=500, observe=_stress_observe,
+                   progress=False)
+    stress = res.history["stress"][-1]
+    assert abs(stress[3] / target - 1) < 1e-3
+    # equilibrium: the floor carries what the servo wall pushes
+    assert abs(stress[2] / target - 1) < 1e-3
+    assert res.history["kinetic"][-1] < 1e-9 * res.history["kinetic"].max()
+
+
+# ----------------------------------------------------------------------------- gradients
+def _oblique_collision_loss(params):
+    r = 0.01
+    p = jdem.make_particles([[0.0, 0.0], [2 * r + 1e-5, 0.004]], [r, r],
+                            vel=[[0.4, 0.0], [-0.4, 0.0]])
+    state, cfg = jdem.make_state(p, skin=2e-3)
+    final, hist = jdem.rollout(state, params, cfg, 40, 50, _positions)
+    return jnp.sum(final.particles.vel[1] ** 2) + 1e3 * final.particles.pos[1, 1]
+
+
+def test_gradient_through_rollout_matches_finite_differences():
+    params = jdem.make_params(dim=2, kn=1e5, ks=5e4, friction=0.3, dt=2e-6, local_damping=0.05)
+    g = jax.grad(_oblique_collision_loss)(params)
+    for field, h in (("kn", 1.0), ("friction", 1e-5), ("local_damping", 1e-6)):
+        base = getattr(params, field)
+        up = _oblique_collision_loss(params._replace(**{field: base + h}))
+        down = _oblique_collision_loss(params._replace(**{field: base - h}))
+        fd = (up - down) / (2 * h)
+        ad = jnp.sum(getattr(g, field))
+        assert np.isfinite(ad)
+        assert abs(ad - fd) <= 1e-3 * abs(fd) + 1e-12, (field, ad, fd)
+
+
+# ----------------------------------------------------------------------------- bad input
+def test_bad_particle_input_names_field_and_value():
+    with pytest.raises(jdem.InputError, match=r"radius\[1\] must be > 0, got -0.5"):
+        jdem.make_particles([[0, 0], [1, 0]], [1.0, -0.5])
+    with pytest.raises(jdem.InputError, match=r"radius\[0\] must be finite, got nan"):
+        jdem.make_particles([[0, 0], [1, 0]], [np.nan, 1.0])
+    with pytest.raises(jdem.InputError, match=r"pos\[1, 1\] must be finite"):
+        jdem.make_particles([[0, 0], [1, np.inf]], [1.0, 1.0])
+    with pytest.raises(jdem.InputError, match=r"params.friction\[0\] must be finite, got nan"):
+        jdem.make_params(dim=2, friction=np.nan)
+    with pytest.raises(jdem.InputError, match=r"params.dt must be > 0"):
+        jdem.make_params(dim=2, dt=-1.0)
+    with pytest.raises(jdem.InputError, match=r"params.local_damping must lie in \[0.0, 1.0\], got 1.5"):
+        jdem.make_params(dim=2, local_damping=1.5)
+
+
+def test_time_step_above_critical_is_refused():
+    state, params, cfg = _small_fall()
+    crit = float(timestep.nominal_critical_timestep(state.particles, params, cfg))
+    with pytest.raises(jdem.InputError, match=r"params.dt = .* exceeds the critical time step"):
+        jdem.run(state, params._replace(dt=jnp.asarray(3 * crit)), cfg, 100, record_every=100,
+                 progress=False)
+
+
+def test_missing_and_corrupt_files_are_reported(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.h5"):
+        load_run(tmp_path / "nope.h5")
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(b"definitely not hdf5" * 10)
+    with pytest.raises(CorruptFileError, match="bad.h5"):
+        load_run(bad)
+
+
+def test_divergence_stops_with_step_and_last_good_state():
+    pos, rad, (w, h) = _loose_discs(4, 4, gap=-0.1, seed=9)
+    p = jdem.make_particles(pos, rad)
+    params = jdem.make_params(dim=2, kn=1e6, ks=1e6, friction=0.3)
+    state, cfg = jdem.make_state(p, walls=_box_walls((0, 0), (w, h), len(pos)))
+    crit = float(timestep.critical_timestep(state, params, cfg))
+    params = params._replace(dt=jnp.asarray(20 * crit))
+    with pytest.raises(jdem.SimulationDiverged) as info:
+        jdem.run(state, params, cfg, 20_000, record_every=100, progress=False, check_dt=False)
+    err = info.value
+    good = err.last_good_state
+    assert int(good.step) == err.step > 0
+    assert np.all(np.isfinite(np.asarray(good.particles.pos)))
+    nxt = jdem.advance(good, params, cfg, 1)
+    assert not np.all(np.isfinite(np.asarray(nxt.particles.pos)))
+    assert f"step {err.step}" in str(err)

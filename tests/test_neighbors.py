@@ -1,0 +1,80 @@
+"""Cell-list neighbour search against brute force, overflow and history carry-over."""
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jdem
+from jdem import neighbors
+
+
+def _brute_pairs(pos, rad, skin):
+    dist = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
+    ii, jj = np.nonzero(np.triu(dist < rad[:, None] + rad[None] + skin, k=1))
+    return set(zip(ii.tolist(), jj.tolist()))
+
+
+def _pairs(c, with_shear=False):
+    i, j, v, s = (np.asarray(a) for a in (c.i, c.j, c.valid, c.shear))
+    if with_shear:
+        return {(int(a), int(b)): sh for a, b, sh in zip(i[v], j[v], s[v])}
+    return set(zip(i[v].tolist(), j[v].tolist()))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_cell_list_finds_exactly_the_brute_force_pairs(dim):
+    rng = np.random.default_rng(3)
+    n = 300
+    pos = rng.uniform(0, 0.02 if dim == 2 else 0.008, size=(n, dim))
+    rad = rng.uniform(0.0004, 0.0008, size=n)
+    p = jdem.make_particles(pos, rad, capacity=n + 7)  # padding rows must be ignored
+    state, cfg = jdem.make_state(p, skin=2e-4)
+    c = state.contacts
+    got = _pairs(c)
+    assert got == _brute_pairs(pos, rad, 2e-4)
+    assert not bool(neighbors.overflowed(c, cfg))
+    # particles that leave the grid are clamped into border cells and still found
+    moved = np.array(pos)
+    moved[:20] += 0.05
+    p2 = p._replace(pos=jnp.asarray(np.vstack([moved, np.zeros((7, dim))])))
+    c2 = neighbors.build(c, p2, cfg)
+    # they crowd into the corner cells: the build must say it ran out of room ...
+    assert bool(neighbors.overflowed(c2, cfg))
+    # ... and a re-allocation then finds every pair
+    c2, cfg2 = neighbors.allocate(p2, cfg, old=c2)
+    assert not bool(neighbors.overflowed(c2, cfg2))
+    got2 = _pairs(c2)
+    assert got2 == _brute_pairs(moved, rad, 2e-4)
+
+
+def test_overflow_is_flagged_and_pairs_are_sorted():
+    rng = np.random.default_rng(0)
+    pos = rng.uniform(0, 0.01, size=(200, 2))
+    p = jdem.make_particles(pos, np.full(200, 5e-4))
+    cfg = jdem.make_config(p, skin=1e-4).replace(max_per_cell=2)
+    c = neighbors.build(neighbors.empty(p, 10), p, cfg)
+    assert bool(neighbors.overflowed(c, cfg))
+    assert int(c.n_pairs) > 10 and int(c.max_in_cell) > 2
+    big, cfg2 = neighbors.allocate(p, cfg)
+    assert not bool(neighbors.overflowed(big, cfg2))
+    v = np.asarray(big.valid)
+    keys = list(zip(np.asarray(big.i)[v].tolist(), np.asarray(big.j)[v].tolist()))
+    assert keys == sorted(keys) and len(keys) == int(big.n_pairs)
+
+
+def test_history_survives_rebuild_and_bonded_pairs_are_excluded():
+    pos = np.array([[0.0, 0.0], [0.0019, 0.0], [0.0038, 0.0], [0.0, 0.0019]])
+    p = jdem.make_particles(pos, np.full(4, 1e-3))
+    state, cfg = jdem.make_state(p, skin=2e-4)
+    c = state.contacts
+    shear = jnp.arange(c.shear.size, dtype=c.shear.dtype).reshape(c.shear.shape) + 1.0
+    c = c._replace(shear=jnp.where(c.valid[:, None], shear, 0.0))
+    before = _pairs(c, with_shear=True)
+    rebuilt = neighbors.build(c, p, cfg)
+    after = _pairs(rebuilt, with_shear=True)
+    assert before.keys() == after.keys()
+    for k in before:
+        np.testing.assert_array_equal(before[k], after[k])
+    bonds = jdem.empty_bonds(2, 2)._replace(i=jnp.array([0, 1], jnp.int32), j=jnp.array([1, 2], jnp.int32),
+                                           valid=jnp.array([True, True]))
+    excluded = neighbors.build(c, p, cfg, bonds)
+    assert _pairs(excluded) == set(before) - {(0, 1), (1, 2)}
