@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
+import hashlib
 import json
 import os
 import platform
@@ -156,6 +157,9 @@ def environment(args):
         pass
     isa = [f for f in ("avx2", "fma", "avx512f", "avx512_bf16", "amx_tile") if f" {f} " in f" {flags} "]
     dev = jax.devices()[0]
+    src = hashlib.sha1()
+    for f in sorted(Path(jdem.__file__).parent.glob("*.py")):
+        src.update(f.name.encode() + f.read_bytes())
     return dict(
         date_utc=_dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"),
         command="python " + " ".join(shlex.quote(a) for a in sys.argv),
@@ -163,6 +167,7 @@ def environment(args):
         jax_version=jax.__version__,
         jaxlib_version=getattr(__import__("jaxlib"), "__version__", "?"),
         jdem_version=getattr(jdem, "__version__", "?"),
+        jdem_source_sha1=src.hexdigest()[:12],
         python=platform.python_version(),
         backend=jax.default_backend(),
         device=str(getattr(dev, "device_kind", dev.platform)),
@@ -467,13 +472,18 @@ def profile_case(state, params, config, repeats, log=print, detail=True, loop_st
         rec("build.candidates", lambda p: neighbors._candidates(p, config), p,
             desc="cell table + (N, 3^d K) candidate gather (includes build.cell_table)")
         rec("build.mask", cand_mask, p, cand, desc="distance test of every candidate")
-        rec("build.compact", lambda m: jnp.nonzero(m.reshape(-1), size=cap, fill_value=0), mask,
-            desc="jnp.nonzero(size=capacity) over the flattened candidate mask")
-        rec("build.sort_pairs", lambda a, b, v: neighbors._sort_pairs(a, b, v, n), c.i, c.j, c.valid,
-            r=r_build, desc="2-key lax.sort of the new pair list")
         rec("build.history_search", lambda cc: neighbors.lex_search(
             cc.i, cc.j, jnp.sum(cc.valid).astype(jnp.int32), cc.i, cc.j), c,
             desc="binary search of old (i, j) rows for the tangential history")
+        parts = [out.get(k, {}).get("best_ms") for k in
+                 ("build", "build.candidates", "build.mask", "build.history_search")]
+        if None not in parts:
+            rest = max(0.0, parts[0] - parts[1] - parts[2] - parts[3])
+            out["build.compact_and_order"] = dict(
+                best_ms=rest, median_ms=rest, repeats=0, compile_s=0.0,
+                what="derived: build - candidates - mask - history_search (compaction of the "
+                     "candidate mask into the pair list, ordering, bookkeeping)")
+            log(f"  profile {'build.compact_and_order (derived)':38s} best {rest:9.3f} ms")
     except Exception as exc:
         log(f"  build breakdown skipped ({type(exc).__name__}: {exc})")
         out["build_breakdown_error"] = f"{type(exc).__name__}: {exc}"
@@ -543,7 +553,7 @@ def run_sweep(args, log=print):
             if args.x64:
                 cmd.append("--x64")
             if flags:
-                cmd += ["--xla-flags", flags]
+                cmd.append(f"--xla-flags={flags}")
             if cpus:
                 cmd += ["--cpus", cpus]
             env = dict(os.environ, XLA_FLAGS=base_flags)
@@ -682,7 +692,8 @@ def write_markdown(path, report):
         f"| backend / device | {env['backend']} / {env['device']} |",
         f"| CPU | {env['cpu_model']} ({', '.join(env['cpu_isa']) or 'no AVX info'}) |",
         f"| cores | {env['cpu_count']} ({env['cpus_usable']} usable by this process) |",
-        f"| jax / jaxlib / jdem | {env['jax_version']} / {env['jaxlib_version']} / {env['jdem_version']} |",
+        f"| jax / jaxlib / jdem | {env['jax_version']} / {env['jaxlib_version']} / {env['jdem_version']} "
+        f"(sha1 of jdem/*.py: {env['jdem_source_sha1']}) |",
         f"| dtype | {env['dtype']} |",
         f"| XLA_FLAGS | `{env['xla_flags'] or '-'}` |",
         f"| load average (1 min) at start / end | {env['load_average_start'][0]:.2f} / "
