@@ -386,14 +386,25 @@ def run_case(dim, n, args, log=print):
 # ----------------------------------------------------------------------------- profile
 def profile_case(state, params, config, repeats, log=print, detail=True, loop_steps=100,
                  quick=False):
-    """Time the parts of a step on the final state of the timed run."""
+    """Time the parts of a step on the final state of the timed run.
+
+    Main figures ("loop.*") are per call inside a jitted ``lax.fori_loop`` whose
+    carry feeds each call's output (or a 1e-30 nudge of the positions that
+    depends on it) back into the next call, so XLA cannot hoist the work out of
+    the loop and buffers are reused as in the real step loop.  The plain names
+    are one jitted call from Python each (new output buffers every call); on
+    this CPU that adds a large fixed cost, so they overstate the in-loop cost.
+    """
     n = state.particles.pos.shape[0]
+    dtype = state.particles.pos.dtype
     build_fn = lambda c, p, b: neighbors.build(c, p, config, b)  # noqa: E731
     fresh = _block(jax.jit(build_fn)(state.contacts, state.particles, state.bonds))
     st = state._replace(contacts=fresh)  # just rebuilt: the common no-rebuild path
     stale = st._replace(contacts=fresh._replace(pos_at_build=jnp.full_like(fresh.pos_at_build, jnp.inf)))
     p, c, w = st.particles, st.contacts, st.walls
     r_cheap, r_build = repeats, max(3, repeats // 3)
+    never = config.replace(skin=1e3)  # needs_rebuild is always false: cond never rebuilds
+    tiny = 1e-30
     out = {}
 
     def rec(name, fn, *a, r=r_cheap, desc="", per=1):
@@ -406,34 +417,77 @@ def profile_case(state, params, config, repeats, log=print, detail=True, loop_st
             out[name] = dict(error=f"{type(exc).__name__}: {exc}")
             return None
         res["what"] = desc
+        res["per_call_in_loop"] = per > 1
         out[name] = res
         log(f"  profile {name:38s} best {res['best_ms']:9.3f} ms   median {res['median_ms']:9.3f} ms")
         return val
 
+    def rec_loop(name, body, init, consts, iters, r, desc):
+        """body(carry, consts) -> carry, run ``iters`` times in one jitted fori_loop."""
+        fn = lambda init, consts: jax.lax.fori_loop(  # noqa: E731
+            0, iters, lambda _, x: body(x, consts), init)
+        return rec(name, fn, init, consts, r=r, per=iters, desc=desc + f" (per call, fori_loop of {iters})")
+
+    def nudge(pp, by):
+        return pp._replace(pos=pp.pos + by.astype(dtype) * tiny)
+
+    # positions are nudged by the previous output so that the geometry cannot be hoisted
+    def loop_contact(x, pr):
+        cc, pp, f, t = x
+        pp = nudge(pp, f[0, 0])
+        cc, fo, to, _ = contact.contact_forces(cc, pp, pr, config)
+        return cc, pp, f + fo, t + to
+
+    def loop_walls(x, pr):
+        ww, pp, f, t = x
+        pp = nudge(pp, f[0, 0])
+        ww, fo, to, _ = walls_mod.wall_forces(ww, pp, pr, config)
+        return ww, pp, f + fo, t + to
+
+    def loop_needs(x, k):
+        pp, acc = x
+        need = neighbors.needs_rebuild(k, pp, config).astype(jnp.int32)
+        return nudge(pp, need), acc + need
+
+    def loop_build(x, k):
+        cc, pp = x
+        pp = nudge(pp, cc.n_builds)
+        return build_fn(cc, pp, k), pp
+
+    def forced(s):
+        return s._replace(contacts=s.contacts._replace(
+            pos_at_build=jnp.full_like(s.contacts.pos_at_build, jnp.inf)))
+
+    zf, zt = jnp.zeros_like(p.pos), jnp.zeros_like(p.angvel)
+    li, lb = 20, 5  # iterations per timed loop: cheap parts, rebuilds
     rec("dispatch_overhead", lambda x: x + 1, jnp.zeros(()), desc="trivial jitted call")
-    rec("contact_forces", lambda c, p, pr: contact.contact_forces(c, p, pr, config), c, p, params,
-        desc="(1) jdem.contact.contact_forces over the whole capacity")
-    rec("wall_forces", lambda w, p, pr: walls_mod.wall_forces(w, p, pr, config), w, p, params,
-        desc="(2) jdem.walls.wall_forces, W x N dense")
-    rec("needs_rebuild", lambda c, p: neighbors.needs_rebuild(c, p, config), c, p,
-        desc="(3) jdem.neighbors.needs_rebuild")
-    rec("build", build_fn, c, p, st.bonds, r=r_build, desc="(4) jdem.neighbors.build")
-    rec("step", lambda s, pr: integrate.step(s, pr, config), st, params,
-        desc="(5) jdem.integrate.step, list fresh (cond skips the rebuild)")
-    if quick:
-        return out
-    rec("step_with_rebuild", lambda s, pr: integrate.step(s, pr, config), stale, params,
-        r=r_build, desc="(5b) integrate.step when the cond takes the rebuild branch")
-    rec("physics_step", lambda s, pr: integrate.physics_step(s, pr, config), st, params,
-        desc="integrate.physics_step (no neighbour test)")
-    rec("forces", lambda s, pr: integrate.forces(s, pr, config), st, params,
-        desc="integrate.forces (contacts + walls + loads)")
-    # the no-rebuild step as it runs inside the loop (fused with its neighbours, no dispatch)
-    r = rec("loop_physics_step", lambda s, pr: jax.lax.fori_loop(
-        0, loop_steps, lambda _, x: integrate.physics_step(x, pr, config), s), st, params,
-        r=max(2, r_build // 2), per=loop_steps,
-        desc=f"fori_loop of {loop_steps} physics_step (no neighbour test), per step")
-    if not detail:
+    rec_loop("loop.contact_forces", loop_contact, (c, p, zf, zt), params, li, r_cheap,
+             "(1) jdem.contact.contact_forces over the whole capacity")
+    rec_loop("loop.wall_forces", loop_walls, (w, p, zf, zt), params, li, r_cheap,
+             "(2) jdem.walls.wall_forces, W x N dense")
+    rec_loop("loop.needs_rebuild", loop_needs, (p, jnp.zeros((), jnp.int32)), c, li, r_cheap,
+             "(3) jdem.neighbors.needs_rebuild")
+    rec_loop("loop.build", loop_build, (c, p), st.bonds, lb, r_build, "(4) jdem.neighbors.build")
+    rec_loop("loop.step", lambda x, pr: integrate.step(x, pr, never), st, params, li, r_build,
+             "(5) jdem.integrate.step, cond never takes the rebuild branch")
+    if not quick:
+        rec_loop("loop.step_with_rebuild", lambda x, pr: integrate.step(forced(x), pr, config), st,
+                 params, lb, r_build, "(5b) integrate.step, cond takes the rebuild branch every step")
+        rec_loop("loop.physics_step", lambda x, pr: integrate.physics_step(x, pr, config), st, params,
+                 li, r_build, "integrate.physics_step (no neighbour test, no cond)")
+        # the same functions called once from Python (fresh output buffers each call)
+        rec("contact_forces", lambda c, p, pr: contact.contact_forces(c, p, pr, config), c, p, params,
+            desc="(1) standalone call")
+        rec("wall_forces", lambda w, p, pr: walls_mod.wall_forces(w, p, pr, config), w, p, params,
+            desc="(2) standalone call")
+        rec("needs_rebuild", lambda c, p: neighbors.needs_rebuild(c, p, config), c, p,
+            desc="(3) standalone call")
+        rec("build", build_fn, c, p, st.bonds, r=r_build, desc="(4) standalone call")
+        rec("step", lambda s, pr: integrate.step(s, pr, config), st, params,
+            desc="(5) standalone call, list fresh (cond skips the rebuild)")
+        rec("step_with_rebuild", lambda s, pr: integrate.step(s, pr, config), stale, params,
+            r=r_build, desc="(5b) standalone call, cond takes the rebuild branch")
+    if quick or not detail:
         return out
 
     # --- inside contact_forces: the gathers and the scatter-adds on their own
@@ -441,17 +495,29 @@ def profile_case(state, params, config, repeats, log=print, detail=True, loop_st
     rec("contact.gathers", lambda p: (p.pos[i], p.pos[j], p.vel[i], p.vel[j], p.angvel[i],
                                       p.angvel[j], p.radius[i], p.radius[j], p.mass[i], p.mass[j],
                                       p.material[i], p.material[j]), p,
-        desc="the 12 per-pair gathers of contact_forces")
+        desc="the 12 per-pair gathers of contact_forces (standalone call)")
     fi = jnp.ones((i.shape[0],) + p.pos.shape[1:], p.pos.dtype)
     ti = jnp.ones((i.shape[0],) + p.angvel.shape[1:], p.pos.dtype)
     rec("contact.scatter_adds", lambda f, t, v: (segment_add(f, i, n) - segment_add(f, j, n),
                                                  segment_add(t, i, n) + segment_add(t, j, n),
                                                  segment_add(v, i, n) + segment_add(v, j, n)),
-        fi, ti, c.valid.astype(jnp.int32), desc="the 6 segment_add scatters of contact_forces")
+        fi, ti, c.valid.astype(jnp.int32), desc="the 6 segment_add scatters of contact_forces (standalone call)")
 
-    # --- inside build (private helpers; skipped if they change)
+    # --- inside build (private helpers; skipped if they change), each in a fori_loop
+    def rec_part(name, fn, k, desc, iters=lb):
+        """fn(particles, k) -> pytree; the loop nudges the positions by one element of
+        the previous output so that nothing can be hoisted."""
+        shapes = jax.eval_shape(fn, p, k)
+        init = (p, jax.tree_util.tree_map(lambda sd: jnp.zeros(sd.shape, sd.dtype), shapes))
+
+        def body(x, k):
+            pp, prev = x
+            pp = nudge(pp, jax.tree_util.tree_leaves(prev)[-1].reshape(-1)[0])
+            return pp, fn(pp, k)
+
+        return rec_loop(name, body, init, k, iters, r_build, desc)
+
     try:
-        cap = c.i.shape[0]
         cand, _ = jax.jit(lambda p: neighbors._candidates(p, config))(p)
 
         def cand_mask(p, cand):
@@ -467,23 +533,31 @@ def profile_case(state, params, config, repeats, log=print, detail=True, loop_st
         out["build_candidates_shape"] = list(cand.shape)
         out["build_candidates_filled"] = float(jnp.mean(cand < n))
         out["build_candidates_kept"] = int(jnp.sum(mask))
-        rec("build.cell_table", lambda p: neighbors._cell_table(p, config), p,
-            desc="argsort particles into cells, fill (cells, K) table")
-        rec("build.candidates", lambda p: neighbors._candidates(p, config), p,
-            desc="cell table + (N, 3^d K) candidate gather (includes build.cell_table)")
-        rec("build.mask", cand_mask, p, cand, desc="distance test of every candidate")
-        rec("build.history_search", lambda cc: neighbors.lex_search(
-            cc.i, cc.j, jnp.sum(cc.valid).astype(jnp.int32), cc.i, cc.j), c,
-            desc="binary search of old (i, j) rows for the tangential history")
+        rec_part("loop.build.cell_table", lambda pp, k: neighbors._cell_table(pp, config), 0,
+                 "argsort particles into cells, fill the (cells, K) table")
+        rec_part("loop.build.candidates", lambda pp, k: neighbors._candidates(pp, config), 0,
+                 "cell table + (N, 3^d K) candidate gather (includes cell_table)")
+        rec_part("loop.build.mask", lambda pp, k: cand_mask(pp, k), cand,
+                 "distance test of every candidate (gather of candidate positions and radii)")
+
+        def history(x, cc):
+            acc, prev = x
+            nv = jnp.sum(cc.valid).astype(jnp.int32)
+            nv = jnp.minimum(nv, nv + acc)  # depends on the carry: not hoistable
+            row, found = neighbors.lex_search(cc.i, cc.j, nv, cc.i, cc.j)
+            return jnp.maximum(row[0], 0), row
+
+        rec_loop("loop.build.history_search", history, (jnp.zeros((), jnp.int32), c.i), c, lb, r_build,
+                 "binary search of the old (i, j) rows for the tangential history")
         parts = [out.get(k, {}).get("best_ms") for k in
-                 ("build", "build.candidates", "build.mask", "build.history_search")]
+                 ("loop.build", "loop.build.candidates", "loop.build.mask", "loop.build.history_search")]
         if None not in parts:
             rest = max(0.0, parts[0] - parts[1] - parts[2] - parts[3])
-            out["build.compact_and_order"] = dict(
-                best_ms=rest, median_ms=rest, repeats=0, compile_s=0.0,
+            out["loop.build.compact_and_order"] = dict(
+                best_ms=rest, median_ms=rest, repeats=0, compile_s=0.0, per_call_in_loop=True,
                 what="derived: build - candidates - mask - history_search (compaction of the "
                      "candidate mask into the pair list, ordering, bookkeeping)")
-            log(f"  profile {'build.compact_and_order (derived)':38s} best {rest:9.3f} ms")
+            log(f"  profile {'loop.build.compact_and_order (derived)':38s} best {rest:9.3f} ms")
     except Exception as exc:
         log(f"  build breakdown skipped ({type(exc).__name__}: {exc})")
         out["build_breakdown_error"] = f"{type(exc).__name__}: {exc}"
@@ -491,43 +565,38 @@ def profile_case(state, params, config, repeats, log=print, detail=True, loop_st
 
 
 def cost_model(res):
-    """Share of the measured per-step time explained by each part.
+    """Split the measured per-step time of the timed window into its parts.
 
-    In-loop split: the window time = steps x (no-rebuild step, timed as a loop of
-    physics_step) + rebuilds x (cost of one rebuild in the loop, the remainder).
-    Standalone split: the best standalone times of the parts, build amortised.
+    Uses the in-loop figures: ms/step = contact + walls + rebuild test + rest of
+    the no-rebuild step + (one rebuild) x (rebuilds per step).
     """
     prof = res["profile"]
     best = lambda k: prof.get(k, {}).get("best_ms")  # noqa: E731
     steps = res["steps_timed"]
     per_step = res["throughput"]["aggregate"]["ms_per_step"]
     rb_per_step = res["rebuilds_timed"] / steps
-    in_loop = {}
-    if best("loop_physics_step") is not None:
-        a = best("loop_physics_step")
-        in_loop["no-rebuild step (loop of physics_step)"] = a
-        rest = per_step - a
-        in_loop["rebuild test + rebuilds (remainder)"] = rest
-        if res["rebuilds_timed"]:
-            b = rest / rb_per_step
-            in_loop["implied ms per rebuild in the loop"] = b
-            # what the same loop would give at other rebuild intervals: ms/step = a + b / interval
-            res["throughput_vs_rebuild_interval"] = {
-                str(iv): res["n"] / ((a + (b / iv if iv else 0.0)) * 1e-3)
-                for iv in (5, 10, 20, 50, 100, 0)}
-    parts = {}
-    if None not in (best("contact_forces"), best("wall_forces"), best("needs_rebuild"),
-                    best("build"), best("step")):
-        parts["contact_forces"] = best("contact_forces")
-        parts["wall_forces"] = best("wall_forces")
-        parts["needs_rebuild"] = best("needs_rebuild")
-        parts["build (amortised)"] = best("build") * rb_per_step
-        parts["rest of step (integration, cond, copies)"] = max(
-            0.0, best("step") - best("contact_forces") - best("wall_forces") - best("needs_rebuild"))
-    predicted = sum(parts.values()) if parts else None
-    return dict(measured_ms_per_step=per_step, rebuilds_per_step=rb_per_step, in_loop=in_loop,
-                parts_ms_per_step=parts, predicted_ms_per_step=predicted,
-                shares={k: v / predicted for k, v in parts.items()} if predicted else {})
+    keys = ("loop.contact_forces", "loop.wall_forces", "loop.needs_rebuild", "loop.build", "loop.step")
+    if None in [best(k) for k in keys]:
+        return dict(measured_ms_per_step=per_step, rebuilds_per_step=rb_per_step)
+    cf, wf, nr, bd, st = (best(k) for k in keys)
+    parts = {
+        "contact_forces": cf,
+        "wall_forces": wf,
+        "needs_rebuild": nr,
+        "rest of the no-rebuild step (integration, cond, copies)": max(0.0, st - cf - wf - nr),
+        "build (amortised)": bd * rb_per_step,
+    }
+    predicted = sum(parts.values())
+    out = dict(measured_ms_per_step=per_step, rebuilds_per_step=rb_per_step,
+               parts_ms_per_step=parts, predicted_ms_per_step=predicted,
+               shares={k: v / predicted for k, v in parts.items()},
+               no_rebuild_step_ms=st, build_ms=bd)
+    if res["rebuilds_timed"]:
+        out["implied_build_ms_from_window"] = (per_step - st) / rb_per_step
+    # what this loop would give at other rebuild intervals: ms/step = step + build / interval
+    res["throughput_vs_rebuild_interval"] = {
+        str(iv): res["n"] / ((st + (bd / iv if iv else 0.0)) * 1e-3) for iv in (5, 10, 20, 50, 100, 0)}
+    return out
 
 
 # ----------------------------------------------------------------------------- sweep
@@ -575,7 +644,7 @@ def run_sweep(args, log=print):
                 particle_steps_per_s_best=tp["best"]["particle_steps_per_s"],
                 rebuilds_timed=case["rebuilds_timed"], steps_timed=case["steps_timed"],
                 cpu_cores_busy=case["cpu_cores_busy"],
-                **{f"{k}_ms": prof.get(k, {}).get("best_ms") for k in
+                **{f"{k}_ms": prof.get("loop." + k, {}).get("best_ms") for k in
                    ("contact_forces", "wall_forces", "needs_rebuild", "build", "step")}))
             log(f"[sweep]   {case['dim']}D N={case['n']}: "
                 f"{tp['median']['particle_steps_per_s'] / 1e6:.3f} M particle-steps/s (median)")
@@ -622,36 +691,38 @@ def profile_table(c):
     if not prof:
         return "(profile skipped)"
     per_step = c["throughput"]["aggregate"]["ms_per_step"]
-    lines = ["| part | best ms | median ms | % of measured ms/step | what |", "|---|---|---|---|---|"]
+    lines = ["Times per call, best and median of repeats.  `loop.*`: inside a jitted `fori_loop` (as in the "
+             "real step loop); plain names: one jitted call from Python (fresh output buffers every call, "
+             "which costs extra here).", "",
+             "| part | timed | best ms | median ms | % of measured ms/step | what |",
+             "|---|---|---|---|---|---|"]
     for name, r in prof.items():
         if not isinstance(r, dict):
             continue
         if "error" in r:
-            lines.append(f"| {name} | error | | | {r['error']} |")
+            lines.append(f"| {name} | | error | | | {r['error']} |")
             continue
-        lines.append(f"| {name} | {r['best_ms']:.3f} | {r['median_ms']:.3f} | "
+        how = "in loop" if r.get("per_call_in_loop") else "standalone"
+        lines.append(f"| {name} | {how} | {r['best_ms']:.3f} | {r['median_ms']:.3f} | "
                      f"{100 * r['best_ms'] / per_step:.0f}% | {r['what']} |")
     cm = c.get("cost_model", {})
-    if cm.get("in_loop"):
-        lines += ["", f"In-loop split of the measured {cm['measured_ms_per_step']:.3f} ms/step "
-                  f"({c['rebuilds_timed']} rebuilds in {c['steps_timed']} steps):", "",
-                  "| part | ms |", "|---|---|"]
-        for k, v in cm["in_loop"].items():
-            lines.append(f"| {k} | {v:.3f} |")
     tvi = c.get("throughput_vs_rebuild_interval")
     if tvi:
         lines += ["", "Particle-steps/s this loop would reach at other rebuild intervals "
-                  "(ms/step = no-rebuild step + ms per rebuild / interval; 0 = never):", "",
+                  "(ms/step = loop.step + loop.build / interval; 0 = never):", "",
                   "| steps per rebuild | " + " | ".join(tvi) + " |", "|---|" + "---|" * len(tvi),
                   "| particle-steps/s | " + " | ".join(_m(v) for v in tvi.values()) + " |"]
     if cm.get("parts_ms_per_step"):
-        lines += ["", f"Cost model per step (best times; build amortised over "
+        lines += ["", f"Cost model per step (in-loop best times; build amortised over "
                   f"{c['rebuilds_timed']} rebuilds / {c['steps_timed']} steps):", "",
                   "| part | ms/step | share |", "|---|---|---|"]
         for k, v in cm["parts_ms_per_step"].items():
             lines.append(f"| {k} | {v:.3f} | {100 * cm['shares'][k]:.0f}% |")
         lines.append(f"| **predicted** | {cm['predicted_ms_per_step']:.3f} | |")
         lines.append(f"| **measured (timed window)** | {cm['measured_ms_per_step']:.3f} | |")
+        if "implied_build_ms_from_window" in cm:
+            lines.append(f"\nOne rebuild as implied by the window, (measured - loop.step) / rebuilds per step: "
+                         f"{cm['implied_build_ms_from_window']:.1f} ms (loop.build: {cm['build_ms']:.1f} ms).")
     if "build_candidates_shape" in prof:
         lines += ["", f"Rebuild: candidate array {prof['build_candidates_shape']} "
                   f"({100 * prof['build_candidates_filled']:.0f}% of slots hold a particle), "
@@ -781,8 +852,6 @@ def print_summary(report):
             if isinstance(r, dict) and "best_ms" in r:
                 print(f"  {name:26s} {r['best_ms']:10.3f}  (median {r['median_ms']:.3f})")
         cm = c.get("cost_model", {})
-        if cm.get("in_loop"):
-            print("  in loop: " + ", ".join(f"{k} {v:.2f} ms" for k, v in cm["in_loop"].items()))
         if c.get("throughput_vs_rebuild_interval"):
             print("  M particle-steps/s at rebuild every 5/10/20/50/100/never steps: " + " / ".join(
                 f"{v / 1e6:.2f}" for v in c["throughput_vs_rebuild_interval"].values()))

@@ -45,7 +45,7 @@ def demo(out="results/demo", small=False):
     for mode in ("tension", "shear"):
         kw = dict(strain_rate_per_step=1e-6) if small else {}
         hist, state, config = labtests.single_bond_test(mode, dim=3, progress=not small, **kw)
-        params = labtests.single_bond_params(3)
+        params = labtests.seed_params(3)
         analytic = labtests.analytic_single_bond_curve(mode, hist["strain"], params)
         label = "tensile" if mode == "tension" else "shear"
         _plot_single_bond(hist, analytic, f"single linked bar: {mode}",

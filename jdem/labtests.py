@@ -242,6 +242,9 @@ def single_bond_setup(mode, *, dim=3, params=None, radius=0.5, density=2500.0,
     if record_every < 1 or chunk_steps % record_every:
         raise InputError(f"record_every = {record_every} must divide chunk_steps = {chunk_steps}")
     params = seed_params(dim) if params is None else params
+    # strong dtypes: a weakly typed leaf (jnp.asarray(python float)) would give
+    # jdem.run's cached chunk a new signature and recompile it
+    params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=jnp.asarray(a).dtype), params)
     batched = _is_batched(params)
     n_batch = int(np.shape(params.dt)[0]) if batched else None
     if mode == "shear" and np.any(_np(params.local_damping) <= 0):

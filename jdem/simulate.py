@@ -182,6 +182,7 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
     if n_steps % record_every:
         raise InputError(f"n_steps = {n_steps} must be a multiple of record_every = {record_every}")
     _check_inputs(state, params, config, batched, check_dt)
+    params = _strong(params)
     observe = observe or basic_observables
     total_records = n_steps // record_every
     per_chunk = _chunk_records(total_records, max(1, (chunk_steps or 5000) // record_every))
@@ -226,6 +227,12 @@ def _chunk_records(total: int, target: int) -> int:
         return total
     best = max(d for d in range(1, target + 1) if total % d == 0)
     return best if 2 * best >= target else target
+
+
+def _strong(tree):
+    """Drop JAX's weak types (e.g. from ``jnp.asarray(0.1)``), which would make
+    an otherwise identical call recompile."""
+    return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=jnp.asarray(a).dtype), tree)
 
 
 def _stack(history, batched):

@@ -1,154 +1,615 @@
-"""Rock specimen generation (prototype)."""
+"""Rock specimen generation: dense random packings of discs / spheres, compacted
+with the jdem engine and bonded (002 §1.4, §2).
+
+Method
+------
+1. **Radii.**  Radii are drawn uniformly in ``[r_min, r_max]`` (``numpy`` generator
+   seeded with ``seed``) until their total area (2D, discs of unit thickness,
+   pi r^2) or volume (3D, 4/3 pi r^3) is ``(1 - target_porosity)`` times the
+   container's.  These are the final radii: they are never rescaled afterwards,
+   so every radius lies in ``[r_min, r_max]`` exactly.
+2. **Loose placement.**  Random sequential addition (RSA) places the particles,
+   shrunk by a common factor ``s0 < 1``, without overlap inside the container
+   (a loose packing fraction of 0.45 in 2D, 0.28 in 3D; O(N) with a cell grid).
+3. **Compaction by radius expansion** with the jdem engine
+   (:func:`jdem.simulate.run`): the container is rigid (walls from
+   :func:`jdem.state.make_walls`; a ``"disc"`` is a regular 64-gon inscribed in
+   the circle), contacts are linear and frictionless (so the packing can
+   rearrange into a dense state), with local damping 0.7 (000 eq 3-19) and a
+   little mass-proportional damping, and a uniform inertial mass (000 §3.3.2
+   density scaling: quasi-static, only the geometry matters).  All radii grow by
+   a common factor ``s -> s (1 + g)`` in stages of ``stage_steps`` steps; ``g``
+   is large (3 %) while the packing is loose and shrinks (to 0.25 %) as the
+   mean number of touching contacts approaches the jamming value (4 in 2D, 6
+   in 3D).  Growth waits while the largest overlap exceeds ``overlap_limit``,
+   so the packing relaxes between stages.  At ``s = 1`` it relaxes until the
+   largest overlap is below ``overlap_limit / 2``.
+4. **Target porosity.**  With ``target_porosity`` the number of particles fixes
+   the porosity (step 1).  A target below the jamming porosity of the packing
+   cannot be reached without large overlaps: the packing then stops relaxing
+   (jams) and :class:`jdem.validate.InputError` names ``target_porosity`` and
+   the densest porosity reached.  Without a target the generator makes the
+   densest packing it can: it starts a little denser than random close packing,
+   and each time the packing jams it removes randomly chosen particles (volume
+   fraction ``1 - s**d`` plus 1 %) and grows on.
+5. **Floaters and bonds.**  Particles with no neighbour within the gap
+   tolerance (rattlers, "floaters") are removed (``remove_floaters``).  Every
+   pair whose gap ``|x_i - x_j| - R_i - R_j`` is at most ``gap_tolerance``
+   (default 0.05 mean radius) is bonded with :func:`jdem.bond.create_bonds`.
+   With ``target_coordination`` the gap tolerance (between 0 and
+   ``max_gap_tolerance``) is chosen so that the mean coordination number is
+   closest to the target (002 §1.4 varies N-bar through packing density and
+   bonding distance); :func:`specimen_for_coordination` also varies the
+   packing density when the gap tolerance alone cannot reach it.
+
+Units and conventions
+---------------------
+SI units (m, kg/m^3).  2D discs have unit thickness.  The container's lower
+corner is the origin: ``"rectangle"`` ``size=(w, h)`` is ``[0, w] x [0, h]``;
+``"box"`` ``size=(w, d, h)`` is ``[0, w] x [0, d] x [0, h]`` (height along z);
+``"disc"`` ``size=D`` (diameter) is the disc of radius ``D/2`` centred at
+``(D/2, D/2)`` (for Brazilian tests).
+
+What is reported
+----------------
+``Specimen.porosity``      1 - (sum of particle areas / volumes) / container area / volume
+                           (rectangle w h, box w d h, disc pi D^2 / 4)
+``Specimen.coordination``  N-bar = 2 n_pairs / n_particles, n_pairs the pairs within
+                           the gap tolerance (= the bonds when ``bond=True``)
+``Specimen.box``           (lo, hi) of the container the packing was compacted in
+``Specimen.info``          n_particles, r_min, r_max, r_mean (of the final radii),
+                           max_overlap [m] and max_overlap_ratio (/ mean radius,
+                           particle pairs and walls), gap_tolerance [m], n_bonds,
+                           n_floaters_removed, n_removed_jammed, steps, stages,
+                           wall_time [s], scale0, dt, target_porosity, shape, size
+"""
 from __future__ import annotations
 
 import math
 import time
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jdem import neighbors
+from jdem.bond import create_bonds
 from jdem.kinematics import dot, safe_norm
 from jdem.measure import kinetic_energy
-from jdem.state import Bonds, Config, Particles, make_params, make_particles, make_walls
 from jdem.simulate import make_state, run
+from jdem.state import Bonds, Config, Particles, empty_bonds, make_params, make_particles, make_walls
+from jdem.timestep import nominal_critical_timestep
 from jdem.validate import InputError
 
-SHAPES = {"rectangle": 2, "box": 3, "disc": 2}
-RSA_FRACTION = {2: 0.30, 3: 0.18}
+SHAPES = ("rectangle", "box", "disc")
+_DIM = {"rectangle": 2, "box": 3, "disc": 2}
+RSA_FRACTION = {2: 0.45, 3: 0.28}      # packing fraction of the loose RSA placement
+DENSE_START = {2: 0.14, 3: 0.34}       # starting porosity of the densest mode (jams, then thins)
+MIN_POROSITY = {2: 0.08, 3: 0.24}      # targets below this are rejected up front
+JAMMING_Z = {2: 4.0, 3: 6.0}           # isostatic contact number (frictionless)
+DISC_SIDES = 64
+GROWTH_MAX, GROWTH_MIN = 0.03, 0.0025
+LOCAL_DAMPING = 0.7
+import os
+_DEBUG = bool(os.environ.get('SPEC_DEBUG'))
+GROW_LIMIT = 1.0
+_PAD = 64                              # particle capacity rounded up to this (compile reuse)
 
 
-def _observe(state, params, config):
-    p = state.particles
-    c = state.contacts
-    dist = safe_norm(p.pos[c.j] - p.pos[c.i])
-    ov = jnp.where(c.valid, p.radius[c.i] + p.radius[c.j] - dist, 0.0)
-    w = state.walls
-    dw = dot(p.pos[None] - w.point[:, None], w.normal[:, None])
-    ovw = jnp.where(p.valid[None] & w.valid[:, None], p.radius[None] - dw, 0.0)
-    return dict(max_overlap=jnp.maximum(jnp.max(ov, initial=0.0), jnp.max(ovw, initial=0.0)),
-                kinetic=kinetic_energy(state),
-                n_touch=jnp.sum(ov > 0))
+class Specimen(NamedTuple):
+    """A generated specimen; see the module docstring for what each field holds."""
+
+    particles: Particles
+    bonds: Bonds
+    box: tuple
+    porosity: float
+    coordination: float
+    seed: int
+    info: dict
 
 
+# ----------------------------------------------------------------------------- input
+class _Container(NamedTuple):
+    shape: str
+    dim: int
+    size: tuple
+    lo: np.ndarray
+    hi: np.ndarray
+    volume: float
+    centre: np.ndarray | None
+    radius: float | None
+
+
+def _finite(name, value):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a number, got {value!r}") from None
+    if not np.isfinite(v):
+        raise InputError(f"{name} must be finite, got {value!r}")
+    return v
+
+
+def _container(shape, size) -> _Container:
+    if not isinstance(shape, str) or shape not in SHAPES:
+        raise InputError(f"shape must be one of {SHAPES}, got {shape!r}")
+    dim = _DIM[shape]
+    want = {"rectangle": 2, "box": 3, "disc": 1}[shape]
+    sz = np.atleast_1d(np.asarray(size, dtype=object)).tolist() if size is not None else []
+    if len(sz) != want:
+        what = {"rectangle": "(width, height)", "box": "(width, depth, height)",
+                "disc": "the diameter (one number)"}[shape]
+        raise InputError(f"size of a {shape!r} must be {what}, got {size!r}")
+    vals = tuple(_finite(f"size[{k}]" if want > 1 else "size", v) for k, v in enumerate(sz))
+    for k, v in enumerate(vals):
+        if v <= 0:
+            raise InputError(f"{f'size[{k}]' if want > 1 else 'size'} must be > 0, got {v!r}")
+    if shape == "disc":
+        d = vals[0]
+        return _Container(shape, 2, vals, np.zeros(2), np.full(2, d), math.pi * d * d / 4,
+                          np.full(2, d / 2), d / 2)
+    hi = np.asarray(vals, float)
+    return _Container(shape, dim, vals, np.zeros(dim), hi, float(np.prod(hi)), None, None)
+
+
+def _check(c: _Container, r_min, r_max, density, target_porosity, target_coordination,
+           gap_tolerance, overlap_limit, seed):
+    r_min = _finite("r_min", r_min)
+    r_max = _finite("r_max", r_max)
+    if r_min <= 0:
+        raise InputError(f"r_min must be > 0, got {r_min!r}")
+    if r_max < r_min:
+        raise InputError(f"r_max must be >= r_min = {r_min!r}, got {r_max!r}")
+    smallest = min(c.size) if c.shape != "disc" else c.size[0]
+    if smallest < 4 * r_max:
+        raise InputError(f"size {c.size!r} is too small for particles of r_max = {r_max!r}: "
+                         f"every side must be at least 4 r_max = {4 * r_max!r}")
+    if np.any(~np.isfinite(np.asarray(density, float))) or np.any(np.asarray(density, float) <= 0):
+        raise InputError(f"density must be > 0, got {density!r}")
+    if target_porosity is not None:
+        phi = _finite("target_porosity", target_porosity)
+        if not 0.0 < phi < 1.0:
+            raise InputError(f"target_porosity must lie in (0, 1), got {phi!r}")
+        if phi < MIN_POROSITY[c.dim]:
+            raise InputError(
+                f"target_porosity = {phi!r} is out of the reachable range: random packings of "
+                f"{'discs' if c.dim == 2 else 'spheres'} without overlap are not denser than "
+                f"porosity ~{MIN_POROSITY[c.dim]} (leave target_porosity=None for the densest)")
+    if target_coordination is not None:
+        z = _finite("target_coordination", target_coordination)
+        top = 6.0 if c.dim == 2 else 12.0
+        if not 0.0 < z < top:
+            raise InputError(f"target_coordination must lie in (0, {top}) in {c.dim}D, got {z!r}")
+        if gap_tolerance is not None:
+            raise InputError("give either gap_tolerance or target_coordination, not both "
+                             f"(gap_tolerance = {gap_tolerance!r})")
+    if gap_tolerance is not None:
+        g = _finite("gap_tolerance", gap_tolerance)
+        if g < 0:
+            raise InputError(f"gap_tolerance must be >= 0, got {g!r}")
+    lim = _finite("overlap_limit", overlap_limit)
+    if not 0.0 < lim < 0.5:
+        raise InputError(f"overlap_limit (a fraction of the mean radius) must lie in (0, 0.5), "
+                         f"got {lim!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InputError(f"seed must be a non-negative integer, got {seed!r}")
+    return r_min, r_max
+
+
+# ----------------------------------------------------------------------------- geometry
 def _vol(r, dim):
+    r = np.asarray(r, float)
     return np.pi * r**2 if dim == 2 else 4.0 / 3.0 * np.pi * r**3
 
 
-def _rsa(rng, rad, lo, hi, disc=None, max_tries=5000, batch=8):
-    """Random sequential addition of non-overlapping spheres inside [lo, hi]
-    (and inside the disc (centre, R) if given).  Places largest first."""
+def _mean_vol(r_min, r_max, dim):
+    a, b = r_min, r_max
+    if dim == 2:
+        return np.pi * (a * a + a * b + b * b) / 3.0
+    return np.pi * (a + b) * (a * a + b * b) / 3.0
+
+
+def _draw_radii(rng, r_min, r_max, dim, solid):
+    """Uniform radii until their total area / volume is closest to ``solid``."""
+    n_guess = int(1.2 * solid / _mean_vol(r_min, r_max, dim)) + 16
+    rad = rng.uniform(r_min, r_max, size=n_guess)
+    cum = np.cumsum(_vol(rad, dim))
+    while cum[-1] < solid:  # (only for extreme draws) draw more, deterministically
+        more = rng.uniform(r_min, r_max, size=n_guess)
+        rad = np.concatenate([rad, more])
+        cum = np.cumsum(_vol(rad, dim))
+    k = int(np.searchsorted(cum, solid))  # cum[k] >= solid > cum[k-1]
+    if k > 0 and solid - cum[k - 1] < cum[k] - solid:
+        k -= 1
+    n = max(k + 1, 2)
+    return rad[:n].copy()
+
+
+def _wall_planes(c: _Container):
+    """Points on and inward normals of the container's walls."""
+    if c.shape == "rectangle":
+        w, h = c.size
+        return [[0, 0], [w, 0], [0, 0], [0, h]], [[1, 0], [-1, 0], [0, 1], [0, -1]]
+    if c.shape == "box":
+        w, d, h = c.size
+        pts = [[0, 0, 0], [w, 0, 0], [0, 0, 0], [0, d, 0], [0, 0, 0], [0, 0, h]]
+        nrm = [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
+        return pts, nrm
+    m = DISC_SIDES  # regular m-gon inscribed in the circle: its sides are the walls
+    th = 2.0 * np.pi * (np.arange(m) + 0.5) / m
+    out = np.stack([np.cos(th), np.sin(th)], axis=1)
+    return c.centre + c.radius * math.cos(math.pi / m) * out, -out
+
+
+def _rsa(rng, rad, c: _Container, max_tries=20000, batch=8):
+    """Random sequential addition of non-overlapping particles of radii ``rad``
+    inside the container (largest first; a cell grid keeps it O(N))."""
     n = rad.size
-    dim = lo.size
+    dim = c.dim
+    lo, hi = c.lo, c.hi
     cell = 2.0 * rad.max()
     shape = np.maximum(1, np.ceil((hi - lo) / cell).astype(np.int64))
     k = int((cell / (2.0 * rad.min()) + 1.0) ** dim) + 1
-    grid = np.full(tuple(shape + 2) + (k,), -1, np.int64)  # +2: a border ring of empty cells
+    grid = np.full(tuple(shape + 2) + (k,), -1, np.int64)  # a ring of empty border cells
     count = np.zeros(tuple(shape + 2), np.int64)
     pos = np.zeros((n, dim))
-    offs = np.array(np.meshgrid(*[[-1, 0, 1]] * dim, indexing="ij")).reshape(dim, -1).T
-    order = np.argsort(-rad, kind="stable")
-    for idx in order:
+    offs = np.stack(np.meshgrid(*[[-1, 0, 1]] * dim, indexing="ij"), -1).reshape(-1, dim)
+    inner = None if c.radius is None else c.radius * math.cos(math.pi / DISC_SIDES)
+    for idx in np.argsort(-rad, kind="stable"):
         r = rad[idx]
-        placed = False
         for _ in range(max_tries // batch):
             cand = rng.uniform(lo + r, hi - r, size=(batch, dim))
             ok = np.ones(batch, bool)
-            if disc is not None:
-                c, big_r = disc
-                ok &= np.sum((cand - c) ** 2, axis=1) <= (big_r - r) ** 2
-            cc = np.floor((cand - lo) / cell).astype(np.int64) + 1
-            cc = np.minimum(cc, shape)
-            nb = cc[:, None, :] + offs[None]  # (batch, 3^d, d)
+            if inner is not None:
+                ok &= np.sum((cand - c.centre) ** 2, axis=1) <= (inner - r) ** 2
+            cc = np.minimum(np.floor((cand - lo) / cell).astype(np.int64) + 1, shape)
+            nb = cc[:, None, :] + offs[None]
             ids = grid[tuple(nb[..., a] for a in range(dim))].reshape(batch, -1)
-            m = ids >= 0
-            safe = np.where(m, ids, 0)
+            there = ids >= 0
+            safe = np.where(there, ids, 0)
             d2 = np.sum((pos[safe] - cand[:, None, :]) ** 2, axis=-1)
-            hit = m & (d2 < (rad[safe] + r) ** 2)
-            ok &= ~hit.any(axis=1)
+            ok &= ~np.any(there & (d2 < (rad[safe] + r) ** 2), axis=1)
             if ok.any():
                 b = int(np.argmax(ok))
                 pos[idx] = cand[b]
                 key = tuple(cc[b])
-                if count[key] >= k:
-                    raise RuntimeError("RSA grid overflow")
                 grid[key + (count[key],)] = idx
                 count[key] += 1
-                placed = True
                 break
-        if not placed:
-            raise RuntimeError("RSA failed")
+        else:
+            raise RuntimeError(f"specimen: random placement failed after {max_tries} tries "
+                               f"(particle {idx}, radius {r:.4g} m)")
     return pos
 
 
-def _container_walls(shape, size, n):
-    if shape == "rectangle":
-        w, h = size
-        pts = [[0, 0], [w, 0], [0, 0], [0, h]]
-        nrm = [[1, 0], [-1, 0], [0, 1], [0, -1]]
-    elif shape == "box":
-        w, d, h = size
-        pts = [[0, 0, 0], [w, 0, 0], [0, 0, 0], [0, d, 0], [0, 0, 0], [0, 0, h]]
-        nrm = [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
-    else:
-        big_r = 0.5 * size[0]
-        m = 64
-        th = 2 * np.pi * (np.arange(m) + 0.5) / m
-        out = np.stack([np.cos(th), np.sin(th)], 1)
-        pts = big_r + big_r * np.cos(np.pi / m) * out
-        nrm = -out
-    return make_walls(pts, nrm, n_particles=n)
+# ----------------------------------------------------------------------------- compaction
+def _observe(state, params, config):
+    """Largest overlap (pairs and walls), kinetic energy and touching pairs."""
+    p = state.particles
+    c = state.contacts
+    dist = safe_norm(p.pos[c.j] - p.pos[c.i])
+    ov = jnp.where(c.valid, p.radius[c.i] + p.radius[c.j] - dist, -jnp.inf)
+    w = state.walls
+    dw = dot(p.pos[None] - w.point[:, None], w.normal[:, None])
+    ovw = jnp.where(p.valid[None] & w.valid[:, None], p.radius[None] - dw, -jnp.inf)
+    return dict(max_overlap=jnp.maximum(jnp.max(ov, initial=0.0), jnp.max(ovw, initial=0.0)),
+                kinetic=kinetic_energy(state), n_touch=jnp.sum(ov > 0))
 
 
-def compact(shape, size, rad, pos0, s0, *, n_stage=200, g=0.01, limit=0.01, progress=False,
-            kn=1e7, max_relax=2000, verbose=True):
-    dim = pos0.shape[1]
+def _bucket(n):
+    return int(math.ceil(n / _PAD) * _PAD)
+
+
+def _setup(c: _Container, rad, pos0, s0, density):
+    """State, params and config for the compaction of particles ``rad`` placed at
+    ``pos0`` with radii ``rad * s0``; the grid is sized for the final radii."""
+    dim = c.dim
     n = rad.size
-    r_mean = rad.mean()
-    m0 = 1.0
-    p = make_particles(pos0, rad * s0)
-    p = p._replace(mass=jnp.full_like(p.mass, m0), inertia=jnp.full_like(p.inertia, m0 * r_mean**2 / 2))
-    pf = p._replace(radius=jnp.asarray(rad, p.radius.dtype))
-    walls = _container_walls(shape, size, n)
+    cap = _bucket(n)
+    r_mean = float(rad.mean())
+    r_max, r_min = float(rad.max()), float(rad.min())
+    m0 = float(np.mean(density)) * float(_vol(r_mean, dim))  # uniform inertial mass
+    p = make_particles(pos0, rad * s0, capacity=cap)
+    valid = np.array(p.valid)
+    mass = jnp.where(p.valid, m0, 1.0).astype(p.mass.dtype)
+    p = p._replace(mass=mass, inertia=mass * (0.5 if dim == 2 else 0.4) * r_mean**2,
+                   gravity_mass=jnp.zeros_like(p.gravity_mass))
     skin = 0.3 * r_mean
-    lo = np.zeros(dim)
-    hi = np.asarray(size if shape != "disc" else (size[0], size[0]), float)
-    origin, gshape, cell = neighbors.grid_for(pf, skin=skin, extra_bounds=(lo, hi))
-    kcell = int(math.ceil(cell**dim * 0.95 / _vol(rad.min(), dim))) + 2
+    cell = 2.0 * r_max + skin
+    origin = tuple(float(v) for v in c.lo - cell)
+    gshape = tuple(int(math.ceil((h - l) / cell)) + 2 for l, h in zip(c.lo, c.hi))
+    k = int(math.ceil(cell**dim * 0.9 / float(_vol(r_min, dim)))) + 3
     cfg = Config(dim=dim, skin=skin, cell_size=cell, grid_origin=origin, grid_shape=gshape,
-                 max_per_cell=kcell)
+                 max_per_cell=k)
+    pts, nrm = _wall_planes(c)
+    walls = make_walls(pts, nrm, n_particles=cap)
     state, cfg = make_state(p, cfg, walls=walls)
-    contacts, cfg = neighbors.allocate(p, cfg, min_capacity=(5 if dim == 2 else 10) * n)
+    contacts, cfg = neighbors.allocate(p, cfg, min_capacity=(4 if dim == 2 else 9) * cap)
     state = state._replace(contacts=contacts)
-    params = make_params(dim, kn=kn, ks=kn * 1e-3, friction=0.0, local_damping=0.7)
-    from jdem.timestep import nominal_critical_timestep
+    kn = 1e8
+    params = make_params(dim, kn=kn, ks=1e-3 * kn, friction=0.0, local_damping=LOCAL_DAMPING)
+    pf = p._replace(radius=jnp.where(p.valid, jnp.asarray(np.resize(rad, cap), p.radius.dtype),
+                                     0.0))
     crit = float(nominal_critical_timestep(pf, params, cfg, coordination=6 if dim == 2 else 12))
     dt = 0.6 * crit
     params = params._replace(dt=jnp.asarray(dt, params.dt.dtype),
                              viscous_damping=jnp.asarray(0.002 / dt, params.dt.dtype))
-    s = s0
-    steps = 0
-    t0 = time.time()
-    mo = 0.0
-    hold = 0
-    while True:
-        if mo <= limit and s < 1.0:
-            s = min(1.0, s * (1 + g))
-            hold = 0
-            state = state._replace(particles=state.particles._replace(radius=jnp.asarray(rad * s, p.radius.dtype)))
-        else:
-            hold += 1
-        res = run(state, params, cfg, n_stage, record_every=n_stage, observe=_observe, progress=False)
-        state, cfg = res.state, res.config
-        steps += n_stage
-        mo = float(res.history["max_overlap"][-1]) / r_mean
-        if verbose:
-            print(f"s={s:.4f} steps={steps} maxov={mo:.4f} ke={res.history['kinetic'][-1]:.3g} touch={res.history['n_touch'][-1]} t={time.time()-t0:.1f}")
-        if s >= 1.0 and mo <= 0.5 * limit:
-            break
-        if hold * n_stage > max_relax:
-            print("JAMMED at", s)
-            break
-    return state, steps, mo
+    return state, params, cfg, valid
+
+
+class _Packing(NamedTuple):
+    pos: np.ndarray
+    rad: np.ndarray
+    container: _Container
+    info: dict
+
+
+def _compact(c: _Container, r_min, r_max, seed, target_porosity, overlap_limit, density,
+             stage_steps, max_steps, progress) -> _Packing:
+    t_start = time.perf_counter()
+    dim = c.dim
+    rng = np.random.default_rng(seed)
+    dense = target_porosity is None
+    phi0 = DENSE_START[dim] if dense else float(target_porosity)
+    rad = _draw_radii(rng, r_min, r_max, dim, (1.0 - phi0) * c.volume)
+    n = rad.size
+    r_mean = float(rad.mean())
+    fraction = float(np.sum(_vol(rad, dim))) / c.volume
+    s0 = min(0.9, (RSA_FRACTION[dim] / fraction) ** (1.0 / dim))
+    pos0 = _rsa(rng, rad * s0, c)
+    state, params, cfg, valid = _setup(c, rad, pos0, s0, density)
+    cap = valid.size
+    rad_cap = np.zeros(cap)
+    rad_cap[:n] = rad
+    dtype = state.particles.radius.dtype
+    limit = float(overlap_limit)
+    z_ref = JAMMING_Z[dim]
+    l_d = c.volume ** (1.0 / dim) / (2.0 * r_mean)           # size in diameters
+    max_hold = max(10 * stage_steps, int(30 * l_d))          # relaxation budget per jam
+    if max_steps is None:
+        max_steps = 40 * max_hold + 200 * stage_steps
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(desc="specimen compaction", unit="step", leave=False)
+    s, steps, stages, hold, n_removed = s0, 0, 0, 0, 0
+    s_ok = s0
+    mo, z = 0.0, 0.0
+    hold_hist: list[float] = []
+
+    def set_radii(st, scale):
+        r = jnp.asarray(np.where(valid, rad_cap * scale, 0.0), dtype)
+        return st._replace(particles=st.particles._replace(radius=r, valid=jnp.asarray(valid)))
+
+    state = set_radii(state, s)
+    try:
+        while True:
+            res = run(state, params, cfg, stage_steps, record_every=stage_steps,
+                      observe=_observe, progress=False)
+            state, cfg = res.state, res.config
+            steps += stage_steps
+            stages += 1
+            nv = int(valid.sum())
+            mo = float(res.history["max_overlap"][-1]) / r_mean
+            z = 2.0 * float(res.history["n_touch"][-1]) / nv
+            if _DEBUG:
+                print(f"stage {stages} steps {steps} s={s:.4f} ov={mo:.4f} z={z:.2f} n={nv} hold={hold}")
+            if bar is not None:
+                bar.update(stage_steps)
+                bar.set_postfix(scale=f"{s:.4f}", overlap=f"{mo:.4f}", z=f"{z:.2f}", n=nv)
+            if mo <= limit * (GROW_LIMIT if s < 1.0 else 1.0):
+                s_ok = s
+                hold, hold_hist = 0, []
+                if s >= 1.0:
+                    if mo <= 0.5 * limit:
+                        break
+                    hold += stage_steps  # nearly there: keep relaxing
+                else:
+                    g = min(GROWTH_MAX, max(GROWTH_MIN, GROWTH_MAX * (1.0 - z / z_ref)))
+                    s = min(1.0, s * (1.0 + g))
+                    state = set_radii(state, s)
+                    continue
+            else:
+                hold += stage_steps
+                hold_hist.append(mo)
+            stalled = len(hold_hist) >= 6 and hold_hist[-1] > 0.9 * hold_hist[-6]
+            if hold > max_hold or stalled:
+                if not dense:
+                    phi = 1.0 - float(np.sum(_vol(rad[valid[:n]] * s_ok, dim))) / c.volume
+                    raise InputError(
+                        f"target_porosity = {target_porosity!r} is out of the reachable range "
+                        f"for this container and size distribution: the packing jammed at "
+                        f"porosity {phi:.4f} (largest overlap {mo:.3g} x the mean radius, "
+                        f"overlap_limit = {limit!r}); ask for a porosity above ~{phi + 0.01:.2f} "
+                        f"or leave target_porosity=None for the densest packing")
+                # densest mode: thin the jammed packing out and grow on
+                idx = np.nonzero(valid)[0]
+                vols = _vol(rad_cap[idx], dim)
+                frac = 1.0 - s**dim * 0.99
+                order = rng.permutation(idx.size)
+                k = int(np.searchsorted(np.cumsum(vols[order]), frac * vols.sum())) + 1
+                valid[idx[order[:k]]] = False
+                n_removed += k
+                hold, hold_hist = 0, []
+                state = set_radii(state, s)
+            if steps >= max_steps:
+                raise RuntimeError(
+                    f"specimen compaction did not converge in max_steps = {max_steps} steps "
+                    f"(scale {s:.4f}, largest overlap {mo:.3g} x the mean radius)")
+    finally:
+        if bar is not None:
+            bar.close()
+    p = state.particles
+    keep = valid[:n]
+    pos = np.asarray(p.pos, np.float64)[:n][keep]
+    info = dict(steps=steps, stages=stages, compaction_time=time.perf_counter() - t_start,
+                scale0=s0, n_removed_jammed=n_removed, dt=float(params.dt),
+                contact_z=z, n_drawn=n)
+    return _Packing(pos, rad[keep], c, info)
+
+
+# ----------------------------------------------------------------------------- bonding
+def _pairs(pos, rad, max_gap):
+    """All pairs (i < j) with gap |x_i - x_j| - R_i - R_j <= max_gap: i, j, gap (float64)."""
+    from scipy.spatial import cKDTree
+
+    if pos.shape[0] < 2:
+        z = np.zeros(0, np.int64)
+        return z, z, np.zeros(0)
+    ij = cKDTree(pos).query_pairs(2.0 * float(rad.max()) + max_gap, output_type="ndarray")
+    i, j = ij[:, 0].astype(np.int64), ij[:, 1].astype(np.int64)
+    gap = np.linalg.norm(pos[j] - pos[i], axis=1) - rad[i] - rad[j]
+    sel = gap <= max_gap
+    i, j, gap = i[sel], j[sel], gap[sel]
+    order = np.lexsort((j, i))
+    return i[order], j[order], gap[order]
+
+
+def _wall_overlap(pos, rad, c: _Container):
+    """Largest overlap of any particle with the container walls [m] (<= 0: none)."""
+    pts, nrm = _wall_planes(c)
+    pts, nrm = np.asarray(pts, float), np.asarray(nrm, float)
+    dist = np.einsum("wnd,wd->wn", pos[None] - pts[:, None], nrm)
+    return float(np.max(rad[None] - dist)) if pos.size else 0.0
+
+
+def _coordination_curve(i, j, gap, n, remove_floaters):
+    """Candidate gap tolerances t (>= 0) and the mean coordination number at each:
+    N-bar(t) = 2 #pairs(gap <= t) / #particles (without floaters if removed)."""
+    gs = np.sort(gap)
+    ts = np.concatenate([[0.0], gs[gs > 0]])
+    pairs = np.searchsorted(gs, ts, side="right")
+    if remove_floaters:
+        mg = np.full(n, np.inf)
+        np.minimum.at(mg, i, gap)
+        np.minimum.at(mg, j, gap)
+        denom = np.searchsorted(np.sort(mg), ts, side="right")
+    else:
+        denom = np.full(ts.shape, n)
+    zbar = 2.0 * pairs / np.maximum(denom, 1)
+    return ts, zbar, gs, pairs
+
+
+def _gap_for(target, i, j, gap, n, remove_floaters, max_gap):
+    """The gap tolerance (in [0, max_gap]) whose N-bar is closest to ``target``;
+    returns (gap_tolerance, N-bar, lowest N-bar, highest N-bar)."""
+    ts, zbar, gs, pairs = _coordination_curve(i, j, gap, n, remove_floaters)
+    best = int(np.argmin(np.abs(zbar - target)))
+    k = int(pairs[best])
+    nxt = gs[k] if k < gs.size else max_gap
+    g = 0.5 * (ts[best] + nxt) if nxt > ts[best] else ts[best]
+    return float(min(max(g, 0.0), max_gap)), float(zbar[best]), float(zbar.min()), float(zbar.max())
+
+
+def _finish(pk: _Packing, *, seed, density, bond, gap_tolerance, target_coordination,
+            coordination_tolerance, max_gap_tolerance, remove_floaters, overlap_limit,
+            t_start, target_porosity) -> Specimen:
+    c = pk.container
+    dim = c.dim
+    pos, rad = pk.pos, pk.rad
+    r_mean0 = float(rad.mean())
+    if target_coordination is not None:
+        max_gap = 0.25 * r_mean0 if max_gap_tolerance is None else float(max_gap_tolerance)
+        i, j, gap = _pairs(pos, rad, max_gap)
+        g, zbar, z_lo, z_hi = _gap_for(float(target_coordination), i, j, gap, rad.size,
+                                       remove_floaters, max_gap)
+        if abs(zbar - target_coordination) > coordination_tolerance:
+            phi = 1.0 - float(np.sum(_vol(rad, dim))) / c.volume
+            hint = ("a looser packing (higher target_porosity)" if target_coordination < z_lo
+                    else "a denser packing (lower target_porosity) or a larger max_gap_tolerance")
+            raise InputError(
+                f"target_coordination = {target_coordination!r} is not reachable within "
+                f"+-{coordination_tolerance} at porosity {phi:.4f}: gap tolerances in "
+                f"[0, {max_gap:.4g}] m give N-bar from {z_lo:.3f} to {z_hi:.3f}; try {hint}, "
+                f"or jdem.specimen.specimen_for_coordination, which varies the packing density")
+    else:
+        g = 0.05 * r_mean0 if gap_tolerance is None else float(gap_tolerance)
+    i, j, gap = _pairs(pos, rad, g)
+    n_float = 0
+    if remove_floaters:
+        deg = np.bincount(i, minlength=rad.size) + np.bincount(j, minlength=rad.size)
+        keep = deg > 0
+        n_float = int(np.sum(~keep))
+        if n_float:
+            pos, rad = pos[keep], rad[keep]
+            i, j, gap = _pairs(pos, rad, g)
+    n = rad.size
+    r_mean = float(rad.mean())
+    particles = make_particles(pos, rad, density=density)
+    if bond:
+        bonds = create_bonds(particles, dim, gap_tolerance=g)
+        n_pairs = int(np.sum(np.asarray(bonds.valid)))
+    else:
+        bonds = empty_bonds(dim, 0, particles.pos.dtype)
+        n_pairs = int(i.size)
+    coordination = 2.0 * n_pairs / n
+    overlap = max(0.0, float(-gap.min()) if gap.size else 0.0, _wall_overlap(pos, rad, c))
+    if overlap > overlap_limit * r_mean:
+        raise RuntimeError(f"specimen: largest overlap {overlap:.4g} m = {overlap / r_mean:.4g} "
+                           f"x the mean radius exceeds overlap_limit = {overlap_limit}")
+    porosity = 1.0 - float(np.sum(_vol(rad, dim))) / c.volume
+    info = dict(pk.info)
+    info.update(
+        shape=c.shape, size=c.size, n_particles=n, r_min=float(rad.min()), r_max=float(rad.max()),
+        r_mean=r_mean, max_overlap=overlap, max_overlap_ratio=overlap / r_mean,
+        gap_tolerance=g, n_bonds=n_pairs if bond else 0, n_pairs=n_pairs,
+        n_floaters_removed=n_float, target_porosity=target_porosity,
+        target_coordination=target_coordination, wall_time=time.perf_counter() - t_start)
+    if c.centre is not None:
+        info.update(centre=c.centre.copy(), radius=c.radius)
+    return Specimen(particles=particles, bonds=bonds, box=(c.lo.copy(), c.hi.copy()),
+                    porosity=porosity, coordination=coordination, seed=int(seed), info=info)
+
+
+# ----------------------------------------------------------------------------- public API
+def generate(shape, size, r_min, r_max, *, seed=0, density=2500.0, target_porosity=None,
+             target_coordination=None, bond=True, gap_tolerance=None, overlap_limit=0.01,
+             remove_floaters=True, coordination_tolerance=0.15, max_gap_tolerance=None,
+             progress=False, stage_steps=200, max_steps=None) -> Specimen:
+    """Generate a compacted (and bonded) specimen; see the module docstring.
+
+    shape            "rectangle" (2D, size=(w, h)), "box" (3D, size=(w, d, h)) or
+                     "disc" (2D, size=diameter)
+    r_min, r_max     radius range [m]; radii are uniform in it
+    seed             seeds every random choice: equal seeds give identical arrays
+    density          particle density [kg/m^3] for the returned particles
+    target_porosity  porosity to reach (None: the densest packing the method makes)
+    target_coordination  mean coordination number N-bar to reach by choosing the gap
+                     tolerance in [0, max_gap_tolerance] (default 0.25 mean radius);
+                     InputError when not within coordination_tolerance
+    bond             bond every pair within the gap tolerance (jdem.bond.create_bonds)
+    gap_tolerance    [m] bonding distance, default 0.05 x the mean radius
+    overlap_limit    largest overlap allowed, as a fraction of the mean radius
+    remove_floaters  drop particles with no neighbour within the gap tolerance
+    progress         show a tqdm bar during the compaction
+    stage_steps      engine steps per expansion / relaxation stage
+    max_steps        give up (RuntimeError) after this many steps (default: ample)
+    """
+    t_start = time.perf_counter()
+    c = _container(shape, size)
+    r_min, r_max = _check(c, r_min, r_max, density, target_porosity, target_coordination,
+                          gap_tolerance, overlap_limit, seed)
+    _check_steps(stage_steps, max_steps, coordination_tolerance, max_gap_tolerance)
+    pk = _compact(c, r_min, r_max, int(seed), target_porosity, overlap_limit, density,
+                  int(stage_steps), max_steps, progress)
+    return _finish(pk, seed=seed, density=density, bond=bond, gap_tolerance=gap_tolerance,
+                   target_coordination=target_coordination,
+                   coordination_tolerance=coordination_tolerance,
+                   max_gap_tolerance=max_gap_tolerance, remove_floaters=remove_floaters,
+                   overlap_limit=overlap_limit, t_start=t_start, target_porosity=target_porosity)
+
+
+def _check_steps(stage_steps, max_steps, coordination_tolerance, max_gap_tolerance):
+    if isinstance(stage_steps, bool) or not isinstance(stage_steps, (int, np.integer)) \
+            or stage_steps < 1:
+        raise InputError(f"stage_steps must be a positive integer, got {stage_steps!r}")
+    if max_steps is not None and (isinstance(max_steps, bool) or
+                                  not isinstance(max_steps, (int, np.integer)) or max_steps < 1):
+        raise InputError(f"max_steps must be a positive integer or None, got {max_steps!r}")
+    tol = _finite("coordination_tolerance", coordination_tolerance)
+    if tol <= 0:
+        raise InputError(f"coordination_tolerance must be > 0, got {tol!r}")
+    if max_gap_tolerance is not None and _finite("max_gap_tolerance", max_gap_tolerance) <= 0:
+        raise InputError(f"max_gap_tolerance must be > 0, got {max_gap_tolerance!r}")

@@ -134,9 +134,6 @@ def test_tension_damage(dim):
     # tolerance: the two-increment lag of the engine (see test_tension), 6e-4
     t_line = lt.analytic_single_bond_curve("tension", strain[soft], p)
     np.testing.assert_allclose(alpha[soft], 1 - t_line / T0, atol=6e-4)
-    # stored damage = 1 - (the force the bond transmits at the next step) / (T0 A_c):
-    # consecutive records are 5 steps apart, so compare with the stress 1 step
-    # later only up to the stress drop over 4 steps along the line
     assert np.all(np.diff(alpha) >= 0)
     assert np.all(beta == 0)
     np.testing.assert_allclose(chi, 1 - (1 - alpha) * (1 - beta), rtol=0, atol=1e-15)
@@ -172,7 +169,7 @@ def test_direct_shear(dim):
     kp = int(np.argmax(tau))
     assert abs(tau[kp] / PEAK_SHEAR - 1) < 5e-3
     # ... and exactly c0 + F_n tan(phi) / A_c with the bond's own normal force
-    assert abs(tau[kp] / (C0 + sig_n[kp] * TANPHI) - 1) < 1e-3
+    assert abs(tau[kp] / (C0 + sig_n[kp] * TANPHI) - 1) < 1e-9
 
     # break in shear when the plastic shear strain reaches gamma_lim
     kb = first_broken(h)
@@ -209,9 +206,9 @@ def test_shear_damage(dim):
     assert np.all(beta[gam < 0.99 * PEAK_SHEAR / G] == 0)
     # beta = 1 - c / c0, c read off the softening line (tau - sigma_n tan phi);
     # tolerance: two strain increments of that line, 2 c0 DSTRAIN / (gamma_lim - c0/G),
-    # about 2e-4 (the same lag as in tension)
+    # 1.8e-4 (the same lag as in tension)
     c_line = lt.analytic_single_bond_curve("shear", gam[soft], p, sig_n[soft]) - sig_n[soft] * TANPHI
-    np.testing.assert_allclose(beta[soft], 1 - c_line / C0, atol=2.7e-4)
+    np.testing.assert_allclose(beta[soft], 1 - c_line / C0, atol=1.8e-4)
     assert np.all(np.diff(beta) >= 0)
     assert np.all(alpha == 0)
     np.testing.assert_allclose(chi, 1 - (1 - alpha) * (1 - beta), rtol=0, atol=1e-15)
@@ -222,7 +219,7 @@ def test_shear_damage(dim):
 
 def test_batched_eps_lim_sweep():
     """8 values of eps_lim as one vmapped jdem.run call; 2 checked against separate runs."""
-    dim = 3
+    dim = 2
     eps_lims = np.linspace(0.6e-3, 1.4e-3, 8)
     base = lt.seed_params(dim)
     params = jdem.broadcast_batch(base, len(eps_lims))._replace(
@@ -260,7 +257,7 @@ def test_batched_eps_lim_sweep():
 def test_grad_post_peak_tensile_stress():
     """d sigma(eps = 0.06 %) / d(T0, eps_lim) by jax.grad through jdem.rollout vs
     central finite differences (through jdem.run)."""
-    dim = 3
+    dim = 2
     # Shortcut: a coarser strain increment (6e-7 instead of 2e-7) so that
     # eps = 0.06 % is reached in exactly one chunk of 1,000 steps; the curve is
     # the same within the two-increment lag of the engine (see test_tension).
@@ -269,7 +266,9 @@ def test_grad_post_peak_tensile_stress():
     su = lt.single_bond_setup("tension", dim=dim, strain_rate_per_step=d_eps, max_strain=eps_at)
     n_steps = su.n_load
     assert n_steps == 1000 and abs(n_steps * d_eps - eps_at) < 1e-15
-    rec = 100                       # 10 checkpointed blocks of 100 steps
+    # one record block of 1,000 steps (checkpointed, the rollout default); the
+    # jitted grad compiles in ~10 s, more blocks only add compile time
+    rec = n_steps
 
     def stress(params):
         _, hist = jdem.rollout(su.state, params, su.config, n_steps // rec, rec,
@@ -277,7 +276,7 @@ def test_grad_post_peak_tensile_stress():
         return hist["tension_stress"][-1]
 
     p0 = su.params
-    val, g = jax.value_and_grad(stress)(p0)
+    val, g = jax.jit(jax.value_and_grad(stress))(p0)
     # the forward value agrees with the host loop (jdem.run)
     h0, _, _ = lt.single_bond_test("tension", dim=dim, params=p0, strain_rate_per_step=d_eps,
                                    max_strain=eps_at)
