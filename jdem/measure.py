@@ -9,7 +9,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from jdem import contact
-from jdem.kinematics import dot, safe_norm
+from jdem.kinematics import dot, safe_norm, unit
 from jdem.state import Config, Params, State
 
 
@@ -102,3 +102,55 @@ def synchronized_kinetic_energy(state: State, params: Params, config: Config):
     inertia = p.inertia if torque.ndim == 1 else p.inertia[:, None]
     angvel = jnp.where(p.fixed_rot, p.angvel, p.angvel + torque / inertia * half)
     return kinetic_energy(state._replace(particles=p._replace(vel=vel, angvel=angvel)))
+
+
+def _outer(a, b):
+    return a[..., :, None] * b[..., None, :]
+
+
+def averaged_stress(state: State, params: Params, config: Config, volume):
+    """Averaged stress tensor of the particles, compression positive [Pa], (d, d).
+
+    000 eq 4-44: sigma_ij = (1/V) sum over particles k and their contact points c
+    of x_i^c T_j^c (T the force on k at c).  Per pair the two particles' terms
+    combine to l (x) f with the branch vector l = x_j - x_i and f the force on i,
+    so no contact point is needed; wall contacts use the arm from the particle
+    centre to the contact point.  The sign is flipped so that compression is
+    positive, as in 002.  ``volume`` [m^3; 2D: m^2 x 1 m] is the region the
+    particles fill (e.g. the specimen between its platens).  Uses the stored
+    contact, bond and wall forces (no dashpots): meaningful near equilibrium.
+    """
+    p = state.particles
+    c = state.contacts
+    branch = p.pos[c.j] - p.pos[c.i]
+    dist = safe_norm(branch)
+    n = branch / jnp.where(dist > 0, dist, 1.0)[:, None]
+    ri, rj = p.radius[c.i], p.radius[c.j]
+    overlap = ri + rj - dist
+    touching = c.valid & (overlap > 0)
+    overlap = jnp.where(touching, overlap, 0.0)
+    r_eff = ri * rj / jnp.where(ri + rj > 0, ri + rj, 1.0)
+    fn, _, _ = contact.normal_law(overlap, r_eff, p.material[c.i], p.material[c.j], params,
+                                  config.contact_model)
+    f_i = jnp.where(touching[:, None], -fn[:, None] * n + c.shear, 0.0)
+    total = jnp.sum(_outer(branch, f_i), axis=0)
+    b = state.bonds
+    if b.i.shape[0]:
+        bl = p.pos[b.j] - p.pos[b.i]
+        bn, _ = unit(bl)
+        bf = jnp.where(b.valid[:, None], -b.normal_force[:, None] * bn + b.shear_force, 0.0)
+        total = total + jnp.sum(_outer(bl, bf), axis=0)
+    w = state.walls
+    if w.point.shape[0]:
+        dist_w = dot(p.pos[None] - w.point[:, None], w.normal[:, None])
+        ov = p.radius[None] - dist_w
+        touch = w.valid[:, None] & p.valid[None] & (ov > 0)
+        ov = jnp.where(touch, ov, 0.0)
+        mat_p = jnp.broadcast_to(p.material[None], ov.shape)
+        mat_w = jnp.broadcast_to(w.material[:, None], ov.shape)
+        fnw, _, _ = contact.normal_law(ov, jnp.broadcast_to(p.radius[None], ov.shape), mat_p,
+                                       mat_w, params, config.contact_model)
+        fw = jnp.where(touch[..., None], fnw[..., None] * w.normal[:, None] + w.shear, 0.0)
+        arm = -(p.radius[None] - 0.5 * ov)[..., None] * w.normal[:, None]
+        total = total + jnp.sum(_outer(arm, fw), axis=(0, 1))
+    return -total / volume

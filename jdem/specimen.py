@@ -90,6 +90,8 @@ JAMMING_Z = {2: 4.0, 3: 6.0}           # isostatic contact number (frictionless)
 DISC_SIDES = 64
 GROWTH_MAX, GROWTH_MIN = 0.03, 0.0025
 LOCAL_DAMPING = 0.7
+GROWTH_POW = 1.0
+FINAL = 0.5
 import os
 _DEBUG = bool(os.environ.get('SPEC_DEBUG'))
 GROW_LIMIT = 1.0
@@ -403,11 +405,11 @@ def _compact(c: _Container, r_min, r_max, seed, target_porosity, overlap_limit, 
                 s_ok = s
                 hold, hold_hist = 0, []
                 if s >= 1.0:
-                    if mo <= 0.5 * limit:
+                    if mo <= FINAL * limit:
                         break
                     hold += stage_steps  # nearly there: keep relaxing
                 else:
-                    g = min(GROWTH_MAX, max(GROWTH_MIN, GROWTH_MAX * (1.0 - z / z_ref)))
+                    g = min(GROWTH_MAX, max(GROWTH_MIN, GROWTH_MAX * max(0.0, 1.0 - z / z_ref) ** GROWTH_POW))
                     s = min(1.0, s * (1.0 + g))
                     state = set_radii(state, s)
                     continue
@@ -475,36 +477,105 @@ def _wall_overlap(pos, rad, c: _Container):
     return float(np.max(rad[None] - dist)) if pos.size else 0.0
 
 
-def _coordination_curve(i, j, gap, n, remove_floaters):
+def _coordination_curve(i, j, gap, n, floaters):
     """Candidate gap tolerances t (>= 0) and the mean coordination number at each:
-    N-bar(t) = 2 #pairs(gap <= t) / #particles (without floaters if removed)."""
+    N-bar(t) = 2 #pairs(gap <= t) / #particles, where floaters (no pair within t)
+    add one pair each ("attach"), drop out ("remove") or count as 0 ("keep")."""
     gs = np.sort(gap)
     ts = np.concatenate([[0.0], gs[gs > 0]])
     pairs = np.searchsorted(gs, ts, side="right")
-    if remove_floaters:
-        mg = np.full(n, np.inf)
-        np.minimum.at(mg, i, gap)
-        np.minimum.at(mg, j, gap)
-        denom = np.searchsorted(np.sort(mg), ts, side="right")
+    mg = np.full(n, np.inf)
+    np.minimum.at(mg, i, gap)
+    np.minimum.at(mg, j, gap)
+    n_float = n - np.searchsorted(np.sort(mg), ts, side="right")
+    if floaters == "attach":
+        zbar = 2.0 * (pairs + n_float) / n
+    elif floaters == "remove":
+        zbar = 2.0 * pairs / np.maximum(n - n_float, 1)
     else:
-        denom = np.full(ts.shape, n)
-    zbar = 2.0 * pairs / np.maximum(denom, 1)
+        zbar = 2.0 * pairs / n
     return ts, zbar, gs, pairs
 
 
-def _gap_for(target, i, j, gap, n, remove_floaters, max_gap):
-    """The gap tolerance (in [0, max_gap]) whose N-bar is closest to ``target``;
-    returns (gap_tolerance, N-bar, lowest N-bar, highest N-bar)."""
-    ts, zbar, gs, pairs = _coordination_curve(i, j, gap, n, remove_floaters)
+def _gap_for(target, i, j, gap, n, floaters, max_gap):
+    """The gap tolerance (in [0, max_gap]) whose N-bar is closest to ``target``
+    (the smallest such); returns (gap_tolerance, N-bar, lowest N-bar, highest N-bar)."""
+    ts, zbar, gs, pairs = _coordination_curve(i, j, gap, n, floaters)
     best = int(np.argmin(np.abs(zbar - target)))
     k = int(pairs[best])
     nxt = gs[k] if k < gs.size else max_gap
-    g = 0.5 * (ts[best] + nxt) if nxt > ts[best] else ts[best]
+    g = 0.5 * (ts[best] + nxt) if nxt > ts[best] else ts[best]  # halfway to the next pair
     return float(min(max(g, 0.0), max_gap)), float(zbar[best]), float(zbar.min()), float(zbar.max())
 
 
+def _handle_floaters(pos, rad, c: _Container, g, mode):
+    """Particles with no neighbour within the gap tolerance ``g``: "keep" them,
+    "remove" them, or "attach" them: move each along the line to its nearest
+    connected neighbour by the gap, so that it touches it.  The move shortens no
+    other gap by more than that gap, so it creates no overlap with particles whose
+    gap was larger; every candidate position is checked against particles and
+    walls, and a floater that cannot be attached is removed.
+    Returns (pos, rad, n_attached, n_removed)."""
+    from scipy.spatial import cKDTree
+
+    n = rad.size
+    i, j, _ = _pairs(pos, rad, g)
+    deg = np.bincount(i, minlength=n) + np.bincount(j, minlength=n)
+    free = np.nonzero(deg == 0)[0]
+    if mode == "keep" or free.size == 0:
+        return pos, rad, 0, 0
+    keep = np.ones(n, bool)
+    if mode == "remove":
+        keep[free] = False
+        return pos[keep], rad[keep], 0, int(free.size)
+    pos = pos.copy()
+    connected = deg > 0
+    tree = cKDTree(pos)
+    pts, nrm = (np.asarray(a, float) for a in _wall_planes(c))
+    r_max = float(rad.max())
+    touch = 1e-4 * float(rad.mean())  # end in (barely) touching contact: gap -1e-4 r_mean
+    moved: list[int] = []
+    attached = 0
+    k_near = min(n - 1, 24)
+    _, near = tree.query(pos[free], k=k_near + 1)
+    for f, cand in zip(free, np.atleast_2d(near)):
+        cand = cand[(cand != f) & (cand < n)]
+        if moved:
+            cand = np.unique(np.concatenate([cand, np.asarray(moved)]))
+        cand = cand[connected[cand]]
+        if cand.size == 0:
+            keep[f] = False
+            continue
+        d = pos[cand] - pos[f]
+        dist = np.linalg.norm(d, axis=1)
+        gaps = dist - rad[cand] - rad[f]
+        ok = False
+        for t in np.argsort(gaps, kind="stable")[:8]:
+            new = pos[f] + d[t] / dist[t] * (gaps[t] + touch)
+            # every particle within reach of the new position (tree: unmoved ones)
+            others = np.asarray(tree.query_ball_point(new, rad[f] + r_max + touch), np.int64)
+            if moved:
+                others = np.concatenate([others, np.asarray(moved)])
+            others = others[(others != f) & keep[others]]
+            og = np.linalg.norm(pos[others] - new, axis=1) - rad[others] - rad[f]
+            wall = np.min(np.einsum("wd,wd->w", new[None] - pts, nrm)) - rad[f]
+            if og.size and og.min() < -2.0 * touch or wall < 0.0:
+                continue
+            pos[f] = new
+            ok = True
+            break
+        if ok:
+            connected[f] = True
+            moved.append(int(f))
+            attached += 1
+        else:
+            keep[f] = False
+    n_removed = int(np.sum(~keep))
+    return pos[keep], rad[keep], attached, n_removed
+
+
 def _finish(pk: _Packing, *, seed, density, bond, gap_tolerance, target_coordination,
-            coordination_tolerance, max_gap_tolerance, remove_floaters, overlap_limit,
+            coordination_tolerance, max_gap_tolerance, floaters, overlap_limit,
             t_start, target_porosity) -> Specimen:
     c = pk.container
     dim = c.dim
@@ -514,7 +585,7 @@ def _finish(pk: _Packing, *, seed, density, bond, gap_tolerance, target_coordina
         max_gap = 0.25 * r_mean0 if max_gap_tolerance is None else float(max_gap_tolerance)
         i, j, gap = _pairs(pos, rad, max_gap)
         g, zbar, z_lo, z_hi = _gap_for(float(target_coordination), i, j, gap, rad.size,
-                                       remove_floaters, max_gap)
+                                       floaters, max_gap)
         if abs(zbar - target_coordination) > coordination_tolerance:
             phi = 1.0 - float(np.sum(_vol(rad, dim))) / c.volume
             hint = ("a looser packing (higher target_porosity)" if target_coordination < z_lo
@@ -526,18 +597,17 @@ def _finish(pk: _Packing, *, seed, density, bond, gap_tolerance, target_coordina
                 f"or jdem.specimen.specimen_for_coordination, which varies the packing density")
     else:
         g = 0.05 * r_mean0 if gap_tolerance is None else float(gap_tolerance)
-    i, j, gap = _pairs(pos, rad, g)
-    n_float = 0
-    if remove_floaters:
-        deg = np.bincount(i, minlength=rad.size) + np.bincount(j, minlength=rad.size)
-        keep = deg > 0
-        n_float = int(np.sum(~keep))
-        if n_float:
-            pos, rad = pos[keep], rad[keep]
-            i, j, gap = _pairs(pos, rad, g)
+    pos, rad, n_att, n_rem = _handle_floaters(pos, rad, c, g, floaters)
     n = rad.size
-    r_mean = float(rad.mean())
+    if n < 2:
+        raise InputError(f"the specimen has {n} particle(s) left: size {c.size!r} is too small "
+                         f"for r_max = {float(pk.rad.max())!r} or target_porosity too high")
     particles = make_particles(pos, rad, density=density)
+    # measure on the arrays as stored (float32 unless x64 is enabled)
+    pos = np.asarray(particles.pos, np.float64)
+    rad = np.asarray(particles.radius, np.float64)
+    r_mean = float(rad.mean())
+    i, j, gap = _pairs(pos, rad, g)
     if bond:
         bonds = create_bonds(particles, dim, gap_tolerance=g)
         n_pairs = int(np.sum(np.asarray(bonds.valid)))
@@ -545,7 +615,8 @@ def _finish(pk: _Packing, *, seed, density, bond, gap_tolerance, target_coordina
         bonds = empty_bonds(dim, 0, particles.pos.dtype)
         n_pairs = int(i.size)
     coordination = 2.0 * n_pairs / n
-    overlap = max(0.0, float(-gap.min()) if gap.size else 0.0, _wall_overlap(pos, rad, c))
+    _, _, ov = _pairs(pos, rad, 0.0)
+    overlap = max(0.0, float(-ov.min()) if ov.size else 0.0, _wall_overlap(pos, rad, c))
     if overlap > overlap_limit * r_mean:
         raise RuntimeError(f"specimen: largest overlap {overlap:.4g} m = {overlap / r_mean:.4g} "
                            f"x the mean radius exceeds overlap_limit = {overlap_limit}")
@@ -555,7 +626,7 @@ def _finish(pk: _Packing, *, seed, density, bond, gap_tolerance, target_coordina
         shape=c.shape, size=c.size, n_particles=n, r_min=float(rad.min()), r_max=float(rad.max()),
         r_mean=r_mean, max_overlap=overlap, max_overlap_ratio=overlap / r_mean,
         gap_tolerance=g, n_bonds=n_pairs if bond else 0, n_pairs=n_pairs,
-        n_floaters_removed=n_float, target_porosity=target_porosity,
+        n_floaters_attached=n_att, n_floaters_removed=n_rem, target_porosity=target_porosity,
         target_coordination=target_coordination, wall_time=time.perf_counter() - t_start)
     if c.centre is not None:
         info.update(centre=c.centre.copy(), radius=c.radius)
@@ -566,7 +637,7 @@ def _finish(pk: _Packing, *, seed, density, bond, gap_tolerance, target_coordina
 # ----------------------------------------------------------------------------- public API
 def generate(shape, size, r_min, r_max, *, seed=0, density=2500.0, target_porosity=None,
              target_coordination=None, bond=True, gap_tolerance=None, overlap_limit=0.01,
-             remove_floaters=True, coordination_tolerance=0.15, max_gap_tolerance=None,
+             floaters="attach", coordination_tolerance=0.15, max_gap_tolerance=None,
              progress=False, stage_steps=200, max_steps=None) -> Specimen:
     """Generate a compacted (and bonded) specimen; see the module docstring.
 
@@ -582,7 +653,8 @@ def generate(shape, size, r_min, r_max, *, seed=0, density=2500.0, target_porosi
     bond             bond every pair within the gap tolerance (jdem.bond.create_bonds)
     gap_tolerance    [m] bonding distance, default 0.05 x the mean radius
     overlap_limit    largest overlap allowed, as a fraction of the mean radius
-    remove_floaters  drop particles with no neighbour within the gap tolerance
+    floaters         particles with no neighbour within the gap tolerance: "attach"
+                     (moved onto their nearest neighbour), "remove" or "keep"
     progress         show a tqdm bar during the compaction
     stage_steps      engine steps per expansion / relaxation stage
     max_steps        give up (RuntimeError) after this many steps (default: ample)
@@ -597,7 +669,7 @@ def generate(shape, size, r_min, r_max, *, seed=0, density=2500.0, target_porosi
     return _finish(pk, seed=seed, density=density, bond=bond, gap_tolerance=gap_tolerance,
                    target_coordination=target_coordination,
                    coordination_tolerance=coordination_tolerance,
-                   max_gap_tolerance=max_gap_tolerance, remove_floaters=remove_floaters,
+                   max_gap_tolerance=max_gap_tolerance, floaters=floaters,
                    overlap_limit=overlap_limit, t_start=t_start, target_porosity=target_porosity)
 
 

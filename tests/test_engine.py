@@ -180,6 +180,31 @@ def test_servo_wall_holds_target_stress():
     assert res.history["kinetic"][-1] < 1e-9 * res.history["kinetic"].max()
 
 
+def test_averaged_stress_of_a_compressed_square_lattice():
+    """3 x 3 equal discs squeezed between four walls, every contact overlapped by d:
+    each row / column carries F = k d, the walls feel n F / L, and 000 eq 4-44
+    gives n F (L + d) / L^2: contact points sit mid-overlap, so the wall contacts
+    lie d/2 beyond each wall plane."""
+    r, k, d, n = 1e-3, 1e6, 1e-6, 3
+    pitch = 2 * r - d
+    c = (r - d) + pitch * np.arange(n)
+    pos = np.stack(np.meshgrid(c, c, indexing="ij"), -1).reshape(-1, 2)
+    side = c[-1] + r - d
+    walls = _box_walls((0, 0), (side, side), n * n)
+    params = jdem.make_params(dim=2, kn=k, ks=k, friction=0.5, dt=1e-6)
+    state, cfg = jdem.make_state(jdem.make_particles(pos, np.full(n * n, r)), walls=walls)
+    sigma = np.asarray(measure.averaged_stress(state, params, cfg, side * side))
+    expected = n * k * d * (side + d) / side**2
+    np.testing.assert_allclose(np.diag(sigma), [expected, expected], rtol=1e-9)
+    assert abs(sigma[0, 1]) < 1e-9 * expected
+    # and the walls feel n F / L after one step from rest
+    s1 = jdem.advance(state, params, cfg, 1)
+    from jdem.walls import normal_stress
+
+    np.testing.assert_allclose(np.asarray(normal_stress(s1.walls._replace(area=jnp.full(4, side)))),
+                               n * k * d / side, rtol=1e-9)
+
+
 # ----------------------------------------------------------------------------- gradients
 def _oblique_collision_loss(params):
     r = 0.01
