@@ -74,7 +74,7 @@ def parse_args(argv=None):
     ap.add_argument("--device-label", default="", help="free text naming the machine for the report")
     ap.add_argument("--chunk-steps", type=int, help="steps per jitted chunk (default 100; quick 50)")
     ap.add_argument("--chunks", type=int, help="timed chunks (default 5; quick 3)")
-    ap.add_argument("--repeats", type=int, help="repeats per profiled function (default 15; quick 5)")
+    ap.add_argument("--repeats", type=int, help="repeats per profiled function (default 15; quick 3)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--spacing", type=float, default=0.97,
                     help="lattice spacing / mean diameter (default 0.97: dense, overlapping)")
@@ -87,7 +87,7 @@ def parse_args(argv=None):
     ap.add_argument("--detail", dest="detail", action="store_true", default=None,
                     help="also break down the rebuild and the contact kernel (default: on unless --quick)")
     ap.add_argument("--no-detail", dest="detail", action="store_false")
-    ap.add_argument("--xla-flags", default="", help="appended to XLA_FLAGS before JAX starts")
+    ap.add_argument("--xla-flags", default="", help="appended to XLA_FLAGS before JAX starts; write it as --xla-flags=--xla_...")
     ap.add_argument("--cpus", default=None,
                     help="pin the process to these CPUs before JAX starts, e.g. '0' or '0,1'")
     ap.add_argument("--sweep", action="store_true",
@@ -770,6 +770,10 @@ def write_markdown(path, report):
         f"| load average (1 min) at start / end | {env['load_average_start'][0]:.2f} / "
         f"{env['load_average_end'][0]:.2f} |",
         "",
+        *([f"**Warning: the machine was shared** (1-min load average {env['load_average_start'][0]:.1f} at the "
+           f"start, {env['load_average_end'][0]:.1f} at the end, on {env['cpu_count']} cores): other processes took "
+           "CPU time during the measurements, so these figures are lower bounds and vary run to run.", ""]
+          if max(env["load_average_start"][0], env["load_average_end"][0]) > env["cpu_count"] - 0.5 else []),
         "Throughput of the jitted `lax.fori_loop` over `jdem.integrate.step`, compile time "
         "excluded; neighbour-list rebuilds inside the step via `lax.cond`.  *median* / *best*: "
         "the median / fastest timed chunk; *window*: all timed steps over all timed time. "
