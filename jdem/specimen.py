@@ -1,54 +1,66 @@
-"""Rock specimen generation: dense random packings of discs / spheres, compacted
-with the jdem engine and bonded (002 §1.4, §2).
+"""Rock specimen generation: random packings of discs / spheres, compacted with
+the jdem engine and bonded (002 §1.4, §2).
 
 Method
 ------
-1. **Radii.**  Radii are drawn uniformly in ``[r_min, r_max]`` (``numpy`` generator
-   seeded with ``seed``) until their total area (2D, discs of unit thickness,
-   pi r^2) or volume (3D, 4/3 pi r^3) is ``(1 - target_porosity)`` times the
-   container's.  These are the final radii: they are never rescaled afterwards,
-   so every radius lies in ``[r_min, r_max]`` exactly.
-2. **Loose placement.**  Random sequential addition (RSA) places the particles,
+1. **Radii.**  Radii are drawn uniformly in ``[r_min, r_max]`` (NumPy generator
+   seeded with ``seed``) until their total area (2D: discs of unit thickness,
+   pi r^2) or volume (3D: 4/3 pi r^3) is closest to ``(1 - target_porosity)``
+   times the container's.  These are the final radii: they are never rescaled,
+   so every radius lies in ``[r_min, r_max]`` (up to the float rounding of the
+   stored arrays).
+2. **Loose placement.**  Random sequential addition places the particles,
    shrunk by a common factor ``s0 < 1``, without overlap inside the container
-   (a loose packing fraction of 0.45 in 2D, 0.28 in 3D; O(N) with a cell grid).
+   (packing fraction 0.45 in 2D, 0.28 in 3D; a cell grid keeps it O(N)).
 3. **Compaction by radius expansion** with the jdem engine
-   (:func:`jdem.simulate.run`): the container is rigid (walls from
-   :func:`jdem.state.make_walls`; a ``"disc"`` is a regular 64-gon inscribed in
-   the circle), contacts are linear and frictionless (so the packing can
-   rearrange into a dense state), with local damping 0.7 (000 eq 3-19) and a
-   little mass-proportional damping, and a uniform inertial mass (000 §3.3.2
-   density scaling: quasi-static, only the geometry matters).  All radii grow by
-   a common factor ``s -> s (1 + g)`` in stages of ``stage_steps`` steps; ``g``
-   is large (3 %) while the packing is loose and shrinks (to 0.25 %) as the
-   mean number of touching contacts approaches the jamming value (4 in 2D, 6
-   in 3D).  Growth waits while the largest overlap exceeds ``overlap_limit``,
-   so the packing relaxes between stages.  At ``s = 1`` it relaxes until the
-   largest overlap is below ``overlap_limit / 2``.
-4. **Target porosity.**  With ``target_porosity`` the number of particles fixes
-   the porosity (step 1).  A target below the jamming porosity of the packing
-   cannot be reached without large overlaps: the packing then stops relaxing
-   (jams) and :class:`jdem.validate.InputError` names ``target_porosity`` and
-   the densest porosity reached.  Without a target the generator makes the
-   densest packing it can: it starts a little denser than random close packing,
-   and each time the packing jams it removes randomly chosen particles (volume
-   fraction ``1 - s**d`` plus 1 %) and grows on.
+   (:func:`jdem.simulate.run`, stages of ``stage_steps`` steps).  The container
+   is rigid (:func:`jdem.state.make_walls`: 4 or 6 planes; a ``"disc"`` is the
+   regular 64-gon inscribed in the circle).  Contacts are linear and
+   frictionless, so the packing can rearrange into a dense state; local damping
+   0.4 (000 eq 3-19; it relaxed these packings faster than 0.7) plus a little
+   mass-proportional damping; one inertial mass for all particles (000 §3.3.2
+   density scaling: quasi-static, only the geometry matters); time step 0.6 x
+   :func:`jdem.timestep.nominal_critical_timestep`.  All radii grow by a common
+   factor ``s -> s (1 + g)``: ``g`` = 3 % per stage while the packing is loose,
+   1 % (falling to 0.25 % as the number of touching contacts per particle
+   nears 4 in 2D / 6 in 3D) beyond a packing fraction of 0.74 (2D) / 0.52 (3D).
+   Growth waits while the largest overlap exceeds ``overlap_limit``, so the
+   packing relaxes between stages; at full size (``s = 1``) it relaxes until
+   the largest overlap (particle pairs and walls) is below 0.9 x
+   ``overlap_limit`` (the "unloading": frictionless contacts at a porosity above
+   jamming push apart until they barely touch).
+4. **Porosity.**  With ``target_porosity`` the particle number fixes the
+   porosity (step 1).  When the packing jams on the way (overlaps stop
+   relaxing), it shrinks 2 %, relaxes and regrows at 0.25 % per stage, up to 3
+   times; a target below the jamming porosity still jams and raises
+   :class:`jdem.validate.InputError` naming ``target_porosity`` and the densest
+   porosity reached.  Without a target (``None``) the generator makes the
+   densest packing it can: it starts denser than random close packing, and each
+   time the packing jams it removes randomly chosen particles (the volume the
+   others still have to gain, plus 0.5 %) and grows on.
 5. **Floaters and bonds.**  Particles with no neighbour within the gap
-   tolerance (rattlers, "floaters") are removed (``remove_floaters``).  Every
-   pair whose gap ``|x_i - x_j| - R_i - R_j`` is at most ``gap_tolerance``
-   (default 0.05 mean radius) is bonded with :func:`jdem.bond.create_bonds`.
-   With ``target_coordination`` the gap tolerance (between 0 and
-   ``max_gap_tolerance``) is chosen so that the mean coordination number is
-   closest to the target (002 §1.4 varies N-bar through packing density and
-   bonding distance); :func:`specimen_for_coordination` also varies the
-   packing density when the gap tolerance alone cannot reach it.
+   tolerance are "floaters" (rattlers).  ``floaters="attach"`` (default) moves
+   each along the line to its nearest connected neighbour until the two touch
+   (this creates no overlap: every other gap shrinks by at most the distance
+   moved, which was the smallest gap; walls are checked), so the porosity is
+   kept; ``"remove"`` drops them (the porosity rises by their share);
+   ``"keep"`` leaves them.  Every pair whose gap ``|x_i - x_j| - R_i - R_j`` is
+   at most ``gap_tolerance`` (default 0.05 x the mean radius) is bonded with
+   :func:`jdem.bond.create_bonds`.  With ``target_coordination`` the gap
+   tolerance in ``[0, max_gap_tolerance]`` (default 0.5 x the mean radius) that
+   brings N-bar closest to the target is used; 002 §1.4 varies N-bar through
+   the packing (density, size distribution, arrangement, embedding), and
+   :func:`specimen_for_coordination` also varies the packing density when the
+   gap tolerance alone cannot reach the target.
 
 Units and conventions
 ---------------------
 SI units (m, kg/m^3).  2D discs have unit thickness.  The container's lower
 corner is the origin: ``"rectangle"`` ``size=(w, h)`` is ``[0, w] x [0, h]``;
 ``"box"`` ``size=(w, d, h)`` is ``[0, w] x [0, d] x [0, h]`` (height along z);
-``"disc"`` ``size=D`` (diameter) is the disc of radius ``D/2`` centred at
-``(D/2, D/2)`` (for Brazilian tests).
+``"disc"`` ``size=D`` (the diameter) is the disc of radius ``D/2`` centred at
+``(D/2, D/2)``, for Brazilian tests.  The returned particles have their true
+masses (``density``), zero velocities and material 0.
 
 What is reported
 ----------------
@@ -58,10 +70,16 @@ What is reported
                            the gap tolerance (= the bonds when ``bond=True``)
 ``Specimen.box``           (lo, hi) of the container the packing was compacted in
 ``Specimen.info``          n_particles, r_min, r_max, r_mean (of the final radii),
-                           max_overlap [m] and max_overlap_ratio (/ mean radius,
-                           particle pairs and walls), gap_tolerance [m], n_bonds,
-                           n_floaters_removed, n_removed_jammed, steps, stages,
-                           wall_time [s], scale0, dt, target_porosity, shape, size
+                           max_overlap [m] and max_overlap_ratio (/ mean radius; particle
+                           pairs and walls), gap_tolerance [m], n_bonds, n_pairs,
+                           n_floaters (found) / _attached / _removed, n_drawn (radii
+                           drawn), n_removed_jammed, n_backoffs, contact_z (touching
+                           contacts per particle at the end of the compaction), steps,
+                           stages, n_builds (neighbour-list builds), dt [s], scale0,
+                           compaction_time and wall_time [s], shape, size,
+                           target_porosity, target_coordination; for a disc also
+                           centre and radius; from specimen_for_coordination also
+                           attempts
 """
 from __future__ import annotations
 
@@ -76,25 +94,25 @@ from jdem import neighbors
 from jdem.bond import create_bonds
 from jdem.kinematics import dot, safe_norm
 from jdem.measure import kinetic_energy
-from jdem.simulate import make_state, run
-from jdem.state import Bonds, Config, Particles, empty_bonds, make_params, make_particles, make_walls
+from jdem.simulate import run
+from jdem.state import (Bonds, Config, Particles, State, empty_bonds, make_params,
+                        make_particles, make_walls)
 from jdem.timestep import nominal_critical_timestep
 from jdem.validate import InputError
 
 SHAPES = ("rectangle", "box", "disc")
+FLOATERS = ("attach", "remove", "keep")
 _DIM = {"rectangle": 2, "box": 3, "disc": 2}
 RSA_FRACTION = {2: 0.45, 3: 0.28}      # packing fraction of the loose RSA placement
 DENSE_START = {2: 0.14, 3: 0.34}       # starting porosity of the densest mode (jams, then thins)
-MIN_POROSITY = {2: 0.08, 3: 0.24}      # targets below this are rejected up front
+MIN_POROSITY = {2: 0.10, 3: 0.25}      # targets below this are rejected up front
 JAMMING_Z = {2: 4.0, 3: 6.0}           # isostatic contact number (frictionless)
 DISC_SIDES = 64
-GROWTH_MAX, GROWTH_MIN = 0.03, 0.0025
-LOCAL_DAMPING = 0.7
-GROWTH_POW = 1.0
-FINAL = 0.5
-import os
-_DEBUG = bool(os.environ.get('SPEC_DEBUG'))
-GROW_LIMIT = 1.0
+GROWTH_MAX, GROWTH_SLOW, GROWTH_MIN = 0.03, 0.01, 0.0025  # radius growth per stage
+SLOW_FRACTION = {2: 0.74, 3: 0.52}     # packing fraction from which growth is slow
+BACKOFF, MAX_BACKOFFS = 0.02, 3        # a jammed target: shrink 2 % and regrow, 3 times
+LOCAL_DAMPING = 0.4                    # 000 eq 3-19 during compaction (fastest relaxation found)
+FINAL_OVERLAP = 0.9                    # relax at full size until overlap <= this x overlap_limit
 _PAD = 64                              # particle capacity rounded up to this (compile reuse)
 
 
@@ -155,7 +173,7 @@ def _container(shape, size) -> _Container:
 
 
 def _check(c: _Container, r_min, r_max, density, target_porosity, target_coordination,
-           gap_tolerance, overlap_limit, seed):
+           gap_tolerance, overlap_limit, seed, floaters="attach"):
     r_min = _finite("r_min", r_min)
     r_max = _finite("r_max", r_max)
     if r_min <= 0:
@@ -193,6 +211,8 @@ def _check(c: _Container, r_min, r_max, density, target_porosity, target_coordin
     if not 0.0 < lim < 0.5:
         raise InputError(f"overlap_limit (a fraction of the mean radius) must lie in (0, 0.5), "
                          f"got {lim!r}")
+    if floaters not in FLOATERS:
+        raise InputError(f"floaters must be one of {FLOATERS}, got {floaters!r}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise InputError(f"seed must be a non-negative integer, got {seed!r}")
     return r_min, r_max
@@ -302,14 +322,16 @@ def _bucket(n):
     return int(math.ceil(n / _PAD) * _PAD)
 
 
-def _setup(c: _Container, rad, pos0, s0, density):
+def _setup(c: _Container, rad, pos0, s0, density, r_lo, r_hi):
     """State, params and config for the compaction of particles ``rad`` placed at
     ``pos0`` with radii ``rad * s0``; the grid is sized for the final radii."""
     dim = c.dim
     n = rad.size
     cap = _bucket(n)
-    r_mean = float(rad.mean())
-    r_max, r_min = float(rad.max()), float(rad.min())
+    # the static configuration depends on the nominal radius range only (one
+    # compilation serves every seed)
+    r_mean = 0.5 * (r_lo + r_hi)
+    r_max, r_min = r_hi, r_lo
     m0 = float(np.mean(density)) * float(_vol(r_mean, dim))  # uniform inertial mass
     p = make_particles(pos0, rad * s0, capacity=cap)
     valid = np.array(p.valid)
@@ -325,15 +347,23 @@ def _setup(c: _Container, rad, pos0, s0, density):
                  max_per_cell=k)
     pts, nrm = _wall_planes(c)
     walls = make_walls(pts, nrm, n_particles=cap)
-    state, cfg = make_state(p, cfg, walls=walls)
-    contacts, cfg = neighbors.allocate(p, cfg, min_capacity=(4 if dim == 2 else 9) * cap)
-    state = state._replace(contacts=contacts)
+    # as jdem.simulate.make_state, but the neighbour list has room for a dense packing
+    # and its capacity depends only on the padded particle capacity, so that every
+    # seed reuses one compilation (jdem.simulate.run re-allocates if ever needed)
+    contacts = neighbors.build(neighbors.empty(p, (4 if dim == 2 else 9) * cap), p, cfg)
+    state = State(particles=p, contacts=contacts, walls=walls,
+                  bonds=empty_bonds(dim, 0, p.pos.dtype), step=jnp.zeros((), jnp.int32),
+                  time=jnp.zeros((), p.pos.dtype), first_bad_step=jnp.full((), -1, jnp.int32))
     kn = 1e8
     params = make_params(dim, kn=kn, ks=1e-3 * kn, friction=0.0, local_damping=LOCAL_DAMPING)
     pf = p._replace(radius=jnp.where(p.valid, jnp.asarray(np.resize(rad, cap), p.radius.dtype),
                                      0.0))
-    crit = float(nominal_critical_timestep(pf, params, cfg, coordination=6 if dim == 2 else 12))
-    dt = 0.6 * crit
+    # time step: 0.6 x the critical step of a particle with 6 (2D) / 12 (3D) contacts, and
+    # at most 0.9 x that of a largest particle ringed by smallest ones (plus two walls)
+    theta = math.asin(1.0 / (1.0 + r_hi / r_lo))
+    z_ring = (math.pi / theta if dim == 2 else 2.0 / (1.0 - math.cos(theta))) + 2.0
+    crit = lambda z: float(nominal_critical_timestep(pf, params, cfg, coordination=z))
+    dt = min(0.6 * crit(6 if dim == 2 else 12), 0.9 * crit(z_ring))
     params = params._replace(dt=jnp.asarray(dt, params.dt.dtype),
                              viscous_damping=jnp.asarray(0.002 / dt, params.dt.dtype))
     return state, params, cfg, valid
@@ -359,7 +389,7 @@ def _compact(c: _Container, r_min, r_max, seed, target_porosity, overlap_limit, 
     fraction = float(np.sum(_vol(rad, dim))) / c.volume
     s0 = min(0.9, (RSA_FRACTION[dim] / fraction) ** (1.0 / dim))
     pos0 = _rsa(rng, rad * s0, c)
-    state, params, cfg, valid = _setup(c, rad, pos0, s0, density)
+    state, params, cfg, valid = _setup(c, rad, pos0, s0, density, r_min, r_max)
     cap = valid.size
     rad_cap = np.zeros(cap)
     rad_cap[:n] = rad
@@ -376,7 +406,7 @@ def _compact(c: _Container, r_min, r_max, seed, target_porosity, overlap_limit, 
         from tqdm.auto import tqdm
 
         bar = tqdm(desc="specimen compaction", unit="step", leave=False)
-    s, steps, stages, hold, n_removed = s0, 0, 0, 0, 0
+    s, steps, stages, hold, n_removed, backoffs = s0, 0, 0, 0, 0, 0
     s_ok = s0
     mo, z = 0.0, 0.0
     hold_hist: list[float] = []
@@ -396,28 +426,35 @@ def _compact(c: _Container, r_min, r_max, seed, target_porosity, overlap_limit, 
             nv = int(valid.sum())
             mo = float(res.history["max_overlap"][-1]) / r_mean
             z = 2.0 * float(res.history["n_touch"][-1]) / nv
-            if _DEBUG:
-                print(f"stage {stages} steps {steps} s={s:.4f} ov={mo:.4f} z={z:.2f} n={nv} hold={hold}")
             if bar is not None:
                 bar.update(stage_steps)
                 bar.set_postfix(scale=f"{s:.4f}", overlap=f"{mo:.4f}", z=f"{z:.2f}", n=nv)
-            if mo <= limit * (GROW_LIMIT if s < 1.0 else 1.0):
+            if s < 1.0 and mo <= limit:          # relaxed enough: grow
                 s_ok = s
+                f = fraction * s**dim
+                if backoffs or f >= SLOW_FRACTION[dim]:
+                    g = GROWTH_MIN if backoffs else max(GROWTH_MIN, GROWTH_SLOW * (1.0 - z / z_ref))
+                else:  # loose: fast, but not far past the slow-down fraction
+                    g = min(GROWTH_MAX, (SLOW_FRACTION[dim] / f) ** (1.0 / dim) - 1.0 + GROWTH_MIN)
+                s = min(1.0, s * (1.0 + g))
+                state = set_radii(state, s)
                 hold, hold_hist = 0, []
-                if s >= 1.0:
-                    if mo <= FINAL * limit:
-                        break
-                    hold += stage_steps  # nearly there: keep relaxing
-                else:
-                    g = min(GROWTH_MAX, max(GROWTH_MIN, GROWTH_MAX * max(0.0, 1.0 - z / z_ref) ** GROWTH_POW))
-                    s = min(1.0, s * (1.0 + g))
+                continue
+            if s >= 1.0 and mo <= FINAL_OVERLAP * limit:
+                break                            # full size and relaxed: done
+            hold += stage_steps
+            hold_hist.append(mo)
+            stalled = len(hold_hist) >= 6 and hold_hist[-1] > 0.9 * hold_hist[-6]
+            if hold > max_hold or stalled:       # jammed
+                if s >= 1.0 and mo <= limit:
+                    break                        # within the limit anyway
+                if not dense and backoffs < MAX_BACKOFFS:
+                    # shrink a little, let the packing rearrange, regrow slowly
+                    backoffs += 1
+                    s = s / (1.0 + BACKOFF)
+                    hold, hold_hist = 0, []
                     state = set_radii(state, s)
                     continue
-            else:
-                hold += stage_steps
-                hold_hist.append(mo)
-            stalled = len(hold_hist) >= 6 and hold_hist[-1] > 0.9 * hold_hist[-6]
-            if hold > max_hold or stalled:
                 if not dense:
                     phi = 1.0 - float(np.sum(_vol(rad[valid[:n]] * s_ok, dim))) / c.volume
                     raise InputError(
@@ -426,14 +463,16 @@ def _compact(c: _Container, r_min, r_max, seed, target_porosity, overlap_limit, 
                         f"porosity {phi:.4f} (largest overlap {mo:.3g} x the mean radius, "
                         f"overlap_limit = {limit!r}); ask for a porosity above ~{phi + 0.01:.2f} "
                         f"or leave target_porosity=None for the densest packing")
-                # densest mode: thin the jammed packing out and grow on
+                # densest mode: thin the jammed packing out by the volume it still has to
+                # gain (plus 0.5 %), choosing particles at random, and grow on
                 idx = np.nonzero(valid)[0]
                 vols = _vol(rad_cap[idx], dim)
-                frac = 1.0 - s**dim * 0.99
+                frac = (1.0 - s**dim) + 0.005
                 order = rng.permutation(idx.size)
                 k = int(np.searchsorted(np.cumsum(vols[order]), frac * vols.sum())) + 1
                 valid[idx[order[:k]]] = False
                 n_removed += k
+                fraction = float(np.sum(_vol(rad_cap[valid], dim))) / c.volume
                 hold, hold_hist = 0, []
                 state = set_radii(state, s)
             if steps >= max_steps:
@@ -447,7 +486,8 @@ def _compact(c: _Container, r_min, r_max, seed, target_porosity, overlap_limit, 
     keep = valid[:n]
     pos = np.asarray(p.pos, np.float64)[:n][keep]
     info = dict(steps=steps, stages=stages, compaction_time=time.perf_counter() - t_start,
-                scale0=s0, n_removed_jammed=n_removed, dt=float(params.dt),
+                scale0=s0, n_removed_jammed=n_removed, n_backoffs=backoffs,
+                n_builds=int(state.contacts.n_builds), dt=float(params.dt),
                 contact_z=z, n_drawn=n)
     return _Packing(pos, rad[keep], c, info)
 
@@ -515,7 +555,7 @@ def _handle_floaters(pos, rad, c: _Container, g, mode):
     other gap by more than that gap, so it creates no overlap with particles whose
     gap was larger; every candidate position is checked against particles and
     walls, and a floater that cannot be attached is removed.
-    Returns (pos, rad, n_attached, n_removed)."""
+    Returns (pos, rad, n_floaters, n_attached, n_removed)."""
     from scipy.spatial import cKDTree
 
     n = rad.size
@@ -523,11 +563,11 @@ def _handle_floaters(pos, rad, c: _Container, g, mode):
     deg = np.bincount(i, minlength=n) + np.bincount(j, minlength=n)
     free = np.nonzero(deg == 0)[0]
     if mode == "keep" or free.size == 0:
-        return pos, rad, 0, 0
+        return pos, rad, int(free.size), 0, 0
     keep = np.ones(n, bool)
     if mode == "remove":
         keep[free] = False
-        return pos[keep], rad[keep], 0, int(free.size)
+        return pos[keep], rad[keep], int(free.size), 0, int(free.size)
     pos = pos.copy()
     connected = deg > 0
     tree = cKDTree(pos)
@@ -570,8 +610,7 @@ def _handle_floaters(pos, rad, c: _Container, g, mode):
             attached += 1
         else:
             keep[f] = False
-    n_removed = int(np.sum(~keep))
-    return pos[keep], rad[keep], attached, n_removed
+    return pos[keep], rad[keep], int(free.size), attached, int(np.sum(~keep))
 
 
 def _finish(pk: _Packing, *, seed, density, bond, gap_tolerance, target_coordination,
@@ -582,7 +621,7 @@ def _finish(pk: _Packing, *, seed, density, bond, gap_tolerance, target_coordina
     pos, rad = pk.pos, pk.rad
     r_mean0 = float(rad.mean())
     if target_coordination is not None:
-        max_gap = 0.25 * r_mean0 if max_gap_tolerance is None else float(max_gap_tolerance)
+        max_gap = 0.5 * r_mean0 if max_gap_tolerance is None else float(max_gap_tolerance)
         i, j, gap = _pairs(pos, rad, max_gap)
         g, zbar, z_lo, z_hi = _gap_for(float(target_coordination), i, j, gap, rad.size,
                                        floaters, max_gap)
@@ -597,7 +636,7 @@ def _finish(pk: _Packing, *, seed, density, bond, gap_tolerance, target_coordina
                 f"or jdem.specimen.specimen_for_coordination, which varies the packing density")
     else:
         g = 0.05 * r_mean0 if gap_tolerance is None else float(gap_tolerance)
-    pos, rad, n_att, n_rem = _handle_floaters(pos, rad, c, g, floaters)
+    pos, rad, n_free, n_att, n_rem = _handle_floaters(pos, rad, c, g, floaters)
     n = rad.size
     if n < 2:
         raise InputError(f"the specimen has {n} particle(s) left: size {c.size!r} is too small "
@@ -615,6 +654,12 @@ def _finish(pk: _Packing, *, seed, density, bond, gap_tolerance, target_coordina
         bonds = empty_bonds(dim, 0, particles.pos.dtype)
         n_pairs = int(i.size)
     coordination = 2.0 * n_pairs / n
+    if target_coordination is not None and \
+            abs(coordination - target_coordination) > coordination_tolerance:
+        raise InputError(  # (the floaters' moves added pairs beyond the prediction)
+            f"target_coordination = {target_coordination!r} was missed: N-bar = "
+            f"{coordination:.3f} after bonding with gap_tolerance {g:.4g} m; try another seed "
+            f"or a larger coordination_tolerance")
     _, _, ov = _pairs(pos, rad, 0.0)
     overlap = max(0.0, float(-ov.min()) if ov.size else 0.0, _wall_overlap(pos, rad, c))
     if overlap > overlap_limit * r_mean:
@@ -626,8 +671,9 @@ def _finish(pk: _Packing, *, seed, density, bond, gap_tolerance, target_coordina
         shape=c.shape, size=c.size, n_particles=n, r_min=float(rad.min()), r_max=float(rad.max()),
         r_mean=r_mean, max_overlap=overlap, max_overlap_ratio=overlap / r_mean,
         gap_tolerance=g, n_bonds=n_pairs if bond else 0, n_pairs=n_pairs,
-        n_floaters_attached=n_att, n_floaters_removed=n_rem, target_porosity=target_porosity,
-        target_coordination=target_coordination, wall_time=time.perf_counter() - t_start)
+        n_floaters=n_free, n_floaters_attached=n_att, n_floaters_removed=n_rem,
+        target_porosity=target_porosity, target_coordination=target_coordination,
+        wall_time=time.perf_counter() - t_start)
     if c.centre is not None:
         info.update(centre=c.centre.copy(), radius=c.radius)
     return Specimen(particles=particles, bonds=bonds, box=(c.lo.copy(), c.hi.copy()),
@@ -648,7 +694,7 @@ def generate(shape, size, r_min, r_max, *, seed=0, density=2500.0, target_porosi
     density          particle density [kg/m^3] for the returned particles
     target_porosity  porosity to reach (None: the densest packing the method makes)
     target_coordination  mean coordination number N-bar to reach by choosing the gap
-                     tolerance in [0, max_gap_tolerance] (default 0.25 mean radius);
+                     tolerance in [0, max_gap_tolerance] (default 0.5 mean radius);
                      InputError when not within coordination_tolerance
     bond             bond every pair within the gap tolerance (jdem.bond.create_bonds)
     gap_tolerance    [m] bonding distance, default 0.05 x the mean radius
@@ -662,7 +708,7 @@ def generate(shape, size, r_min, r_max, *, seed=0, density=2500.0, target_porosi
     t_start = time.perf_counter()
     c = _container(shape, size)
     r_min, r_max = _check(c, r_min, r_max, density, target_porosity, target_coordination,
-                          gap_tolerance, overlap_limit, seed)
+                          gap_tolerance, overlap_limit, seed, floaters)
     _check_steps(stage_steps, max_steps, coordination_tolerance, max_gap_tolerance)
     pk = _compact(c, r_min, r_max, int(seed), target_porosity, overlap_limit, density,
                   int(stage_steps), max_steps, progress)
@@ -685,3 +731,87 @@ def _check_steps(stage_steps, max_steps, coordination_tolerance, max_gap_toleran
         raise InputError(f"coordination_tolerance must be > 0, got {tol!r}")
     if max_gap_tolerance is not None and _finite("max_gap_tolerance", max_gap_tolerance) <= 0:
         raise InputError(f"max_gap_tolerance must be > 0, got {max_gap_tolerance!r}")
+
+
+def specimen_for_coordination(target_N, shape, size, r_min, r_max, *, tolerance=0.15,
+                              target_porosity=None, max_gap_tolerance=None, max_attempts=4,
+                              porosity_step=0.04, seed=0, density=2500.0, bond=True,
+                              overlap_limit=0.01, floaters="attach", progress=False,
+                              stage_steps=200, max_steps=None) -> Specimen:
+    """A specimen whose mean coordination number N-bar is ``target_N`` +- ``tolerance``.
+
+    002 §1.4 reaches different N-bar by changing the packing (particle number,
+    size distribution, arrangement, embedding).  Here: the packing is compacted
+    at ``target_porosity`` (None: the densest), then the bonding gap tolerance is
+    chosen in [0, ``max_gap_tolerance``] (default 0.5 x the mean radius) to bring
+    N-bar closest to the target.  If even a zero tolerance gives too many
+    contacts, the packing is remade ``porosity_step`` looser; if the largest
+    tolerance gives too few, ``porosity_step`` denser (down to the densest), at
+    most ``max_attempts`` packings in all.  Raises :class:`InputError` naming
+    ``target_N`` and the N-bar ranges reached at each porosity tried.
+    ``info["attempts"]`` lists (porosity, lowest N-bar, highest N-bar) per packing.
+    """
+    t_start = time.perf_counter()
+    c = _container(shape, size)
+    z_top = 6.0 if c.dim == 2 else 12.0
+    z_target = _finite("target_N", target_N)
+    if not 0.0 < z_target < z_top:
+        raise InputError(f"target_N must lie in (0, {z_top}) in {c.dim}D, got {target_N!r}")
+    r_min, r_max = _check(c, r_min, r_max, density, target_porosity, None, None,
+                          overlap_limit, seed, floaters)
+    tol = _finite("tolerance", tolerance)
+    if tol <= 0:
+        raise InputError(f"tolerance must be > 0, got {tolerance!r}")
+    _check_steps(stage_steps, max_steps, tol, max_gap_tolerance)
+    if isinstance(max_attempts, bool) or not isinstance(max_attempts, (int, np.integer)) \
+            or max_attempts < 1:
+        raise InputError(f"max_attempts must be a positive integer, got {max_attempts!r}")
+    step = _finite("porosity_step", porosity_step)
+    if not 0.0 < step < 0.5:
+        raise InputError(f"porosity_step must lie in (0, 0.5), got {porosity_step!r}")
+    max_gap_rel = None if max_gap_tolerance is None else float(max_gap_tolerance)
+    phi = None if target_porosity is None else float(target_porosity)
+    attempts = []
+    tried = set()
+    for _ in range(int(max_attempts)):
+        key = None if phi is None else round(phi, 6)
+        if key in tried:
+            break
+        tried.add(key)
+        try:
+            pk = _compact(c, r_min, r_max, int(seed), phi, overlap_limit, density,
+                          int(stage_steps), max_steps, progress)
+        except InputError:
+            if phi is None:
+                raise
+            phi = None  # that porosity jammed: the densest packing is the next best
+            continue
+        max_gap = 0.5 * float(pk.rad.mean()) if max_gap_rel is None else max_gap_rel
+        i, j, gap = _pairs(pk.pos, pk.rad, max_gap)
+        _, zbar, z_lo, z_hi = _gap_for(z_target, i, j, gap, pk.rad.size, floaters, max_gap)
+        phi_reached = 1.0 - float(np.sum(_vol(pk.rad, c.dim))) / c.volume
+        attempts.append((phi_reached, z_lo, z_hi))
+        if abs(zbar - z_target) <= tol:
+            sp = _finish(pk, seed=seed, density=density, bond=bond, gap_tolerance=None,
+                         target_coordination=z_target, coordination_tolerance=tol,
+                         max_gap_tolerance=max_gap, floaters=floaters,
+                         overlap_limit=overlap_limit, t_start=t_start,
+                         target_porosity=target_porosity)
+            sp.info["attempts"] = attempts
+            return sp
+        if z_target < z_lo:                  # too many contacts even at zero gap: looser
+            phi = phi_reached + step
+            if phi >= 0.95:
+                break
+        else:                                # too few even at the largest gap: denser
+            if phi is None:
+                break
+            phi = phi_reached - step
+            if phi < MIN_POROSITY[c.dim]:
+                phi = None
+    reached = "; ".join(f"porosity {p:.3f}: N-bar {lo:.2f} to {hi:.2f}" for p, lo, hi in attempts)
+    raise InputError(
+        f"target_N = {target_N!r} is not reachable within +-{tol}: gap tolerances up to "
+        f"{'0.5 x the mean radius' if max_gap_rel is None else f'{max_gap_rel:.4g} m'} gave "
+        f"{reached or 'no packing'}; a larger max_gap_tolerance or a different size "
+        f"distribution may help")
