@@ -17,6 +17,8 @@ normal dashpot (``Params.contact_damping``, fraction of critical) damps impacts.
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax.numpy as jnp
 
 from jdem.kinematics import cross_r_f, cross_w_r, dot, rotate_into_plane, safe_norm, segment_add
@@ -65,6 +67,40 @@ def dashpot(kn, m_eff, approach_rate, params: Params):
     return 2.0 * params.contact_damping * jnp.sqrt(m_eff * kn) * approach_rate
 
 
+class PairGeometry(NamedTuple):
+    """Geometry of every listed pair (C rows): ``branch`` x_j - x_i (C, d), ``dist``,
+    unit ``normal`` from i to j, ``overlap`` (0 where not touching), ``touching``
+    and the effective radius ``r_eff`` = R_i R_j / (R_i + R_j)."""
+
+    branch: jnp.ndarray
+    dist: jnp.ndarray
+    normal: jnp.ndarray
+    overlap: jnp.ndarray
+    touching: jnp.ndarray
+    r_eff: jnp.ndarray
+
+
+def pair_geometry(contacts: Contacts, particles: Particles) -> PairGeometry:
+    p = particles
+    i, j = contacts.i, contacts.j
+    branch = p.pos[j] - p.pos[i]
+    dist = safe_norm(branch)
+    normal = branch / jnp.where(dist > 0, dist, 1.0)[:, None]
+    ri, rj = p.radius[i], p.radius[j]
+    overlap = ri + rj - dist
+    touching = contacts.valid & (overlap > 0) & (dist > 0)
+    r_eff = ri * rj / jnp.where(ri + rj > 0, ri + rj, 1.0)
+    return PairGeometry(branch, dist, normal, jnp.where(touching, overlap, 0.0), touching, r_eff)
+
+
+def pair_law(contacts: Contacts, particles: Particles, params: Params, config: Config):
+    """Geometry and normal law of every listed pair: ``(PairGeometry, F_n, k_n, k_t)``."""
+    g = pair_geometry(contacts, particles)
+    fn, kn, kt = normal_law(g.overlap, g.r_eff, particles.material[contacts.i],
+                            particles.material[contacts.j], params, config.contact_model)
+    return g, fn, kn, kt
+
+
 def contact_forces(contacts: Contacts, particles: Particles, params: Params, config: Config):
     """Forces of all listed pairs.
 
@@ -75,17 +111,9 @@ def contact_forces(contacts: Contacts, particles: Particles, params: Params, con
     p = particles
     n = p.pos.shape[0]
     i, j = contacts.i, contacts.j
-    branch = p.pos[j] - p.pos[i]
-    dist = safe_norm(branch)
-    normal = branch / jnp.where(dist > 0, dist, 1.0)[:, None]  # unit, from i to j
+    g, fn, kn, kt = pair_law(contacts, p, params, config)
+    normal, overlap, touching = g.normal, g.overlap, g.touching  # normal: unit, from i to j
     ri, rj = p.radius[i], p.radius[j]
-    overlap = ri + rj - dist
-    touching = contacts.valid & (overlap > 0) & (dist > 0)
-    overlap = jnp.where(touching, overlap, 0.0)
-    r_eff = ri * rj / jnp.where(ri + rj > 0, ri + rj, 1.0)
-
-    fn, kn, kt = normal_law(overlap, r_eff, p.material[i], p.material[j], params,
-                            config.contact_model)
     # contact point in the middle of the overlap (000 fig 4-4)
     arm_i = (ri - 0.5 * overlap)[:, None] * normal
     arm_j = -(rj - 0.5 * overlap)[:, None] * normal
@@ -110,13 +138,5 @@ def contact_forces(contacts: Contacts, particles: Particles, params: Params, con
 def pair_stiffness(contacts: Contacts, particles: Particles, params: Params, config: Config):
     """Normal and tangential tangent stiffness of every touching listed pair (C,),
     zero elsewhere; used for the critical time step and averaged quantities."""
-    p = particles
-    i, j = contacts.i, contacts.j
-    dist = safe_norm(p.pos[j] - p.pos[i])
-    ri, rj = p.radius[i], p.radius[j]
-    overlap = ri + rj - dist
-    touching = contacts.valid & (overlap > 0)
-    overlap = jnp.where(touching, overlap, 0.0)
-    r_eff = ri * rj / jnp.where(ri + rj > 0, ri + rj, 1.0)
-    _, kn, kt = normal_law(overlap, r_eff, p.material[i], p.material[j], params, config.contact_model)
-    return jnp.where(touching, kn, 0.0), jnp.where(touching, kt, 0.0), touching
+    g, _, kn, kt = pair_law(contacts, particles, params, config)
+    return jnp.where(g.touching, kn, 0.0), jnp.where(g.touching, kt, 0.0), g.touching

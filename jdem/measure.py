@@ -9,7 +9,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from jdem import contact
-from jdem.kinematics import dot, safe_norm, unit
+from jdem.kinematics import dot, unit
+from jdem.walls import wall_law
 from jdem.state import Config, Params, State
 
 
@@ -38,23 +39,11 @@ def _spring_energy(fn, overlap, shear, kt, model):
 
 def contact_energy(state: State, params: Params, config: Config):
     """Elastic energy stored in unbonded particle–particle and particle–wall contacts."""
-    p = state.particles
-    c = state.contacts
-    dist = safe_norm(p.pos[c.j] - p.pos[c.i])
-    ri, rj = p.radius[c.i], p.radius[c.j]
-    overlap = jnp.where(c.valid, jnp.maximum(ri + rj - dist, 0.0), 0.0)
-    r_eff = ri * rj / jnp.where(ri + rj > 0, ri + rj, 1.0)
-    fn, _, kt = contact.normal_law(overlap, r_eff, p.material[c.i], p.material[c.j], params,
-                                   config.contact_model)
-    e = jnp.sum(_spring_energy(fn, overlap, c.shear, kt, config.contact_model))
+    g, fn, _, kt = contact.pair_law(state.contacts, state.particles, params, config)
+    e = jnp.sum(_spring_energy(fn, g.overlap, state.contacts.shear, kt, config.contact_model))
     w = state.walls
     if w.point.shape[0]:
-        dist = dot(p.pos[None] - w.point[:, None], w.normal[:, None])
-        ov = jnp.where(w.valid[:, None] & p.valid[None], jnp.maximum(p.radius[None] - dist, 0.0), 0.0)
-        mat_p = jnp.broadcast_to(p.material[None], ov.shape)
-        mat_w = jnp.broadcast_to(w.material[:, None], ov.shape)
-        fn, _, kt = contact.normal_law(ov, jnp.broadcast_to(p.radius[None], ov.shape), mat_p, mat_w,
-                                       params, config.contact_model)
+        ov, _, fn, _, kt = wall_law(w, state.particles, params, config)
         e = e + jnp.sum(_spring_energy(fn, ov, w.shear, kt, config.contact_model))
     return e
 
@@ -66,11 +55,8 @@ def total_energy(state: State, params: Params, config: Config):
 
 def coordination_number(state: State):
     """Mean number of touching unbonded contacts per valid particle."""
-    p = state.particles
-    c = state.contacts
-    dist = safe_norm(p.pos[c.j] - p.pos[c.i])
-    touching = c.valid & (p.radius[c.i] + p.radius[c.j] - dist > 0)
-    return 2.0 * jnp.sum(touching) / jnp.maximum(jnp.sum(p.valid), 1)
+    touching = contact.pair_geometry(state.contacts, state.particles).touching
+    return 2.0 * jnp.sum(touching) / jnp.maximum(jnp.sum(state.particles.valid), 1)
 
 
 def basic_observables(state: State, params: Params, config: Config):
@@ -121,19 +107,9 @@ def averaged_stress(state: State, params: Params, config: Config, volume):
     contact, bond and wall forces (no dashpots): meaningful near equilibrium.
     """
     p = state.particles
-    c = state.contacts
-    branch = p.pos[c.j] - p.pos[c.i]
-    dist = safe_norm(branch)
-    n = branch / jnp.where(dist > 0, dist, 1.0)[:, None]
-    ri, rj = p.radius[c.i], p.radius[c.j]
-    overlap = ri + rj - dist
-    touching = c.valid & (overlap > 0)
-    overlap = jnp.where(touching, overlap, 0.0)
-    r_eff = ri * rj / jnp.where(ri + rj > 0, ri + rj, 1.0)
-    fn, _, _ = contact.normal_law(overlap, r_eff, p.material[c.i], p.material[c.j], params,
-                                  config.contact_model)
-    f_i = jnp.where(touching[:, None], -fn[:, None] * n + c.shear, 0.0)
-    total = jnp.sum(_outer(branch, f_i), axis=0)
+    g, fn, _, _ = contact.pair_law(state.contacts, p, params, config)
+    f_i = jnp.where(g.touching[:, None], -fn[:, None] * g.normal + state.contacts.shear, 0.0)
+    total = jnp.sum(_outer(g.branch, f_i), axis=0)
     b = state.bonds
     if b.i.shape[0]:
         bl = p.pos[b.j] - p.pos[b.i]
@@ -142,14 +118,7 @@ def averaged_stress(state: State, params: Params, config: Config, volume):
         total = total + jnp.sum(_outer(bl, bf), axis=0)
     w = state.walls
     if w.point.shape[0]:
-        dist_w = dot(p.pos[None] - w.point[:, None], w.normal[:, None])
-        ov = p.radius[None] - dist_w
-        touch = w.valid[:, None] & p.valid[None] & (ov > 0)
-        ov = jnp.where(touch, ov, 0.0)
-        mat_p = jnp.broadcast_to(p.material[None], ov.shape)
-        mat_w = jnp.broadcast_to(w.material[:, None], ov.shape)
-        fnw, _, _ = contact.normal_law(ov, jnp.broadcast_to(p.radius[None], ov.shape), mat_p,
-                                       mat_w, params, config.contact_model)
+        ov, touch, fnw, _, _ = wall_law(w, p, params, config)
         fw = jnp.where(touch[..., None], fnw[..., None] * w.normal[:, None] + w.shear, 0.0)
         arm = -(p.radius[None] - 0.5 * ov)[..., None] * w.normal[:, None]
         total = total + jnp.sum(_outer(arm, fw), axis=(0, 1))

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jdem import contact
+from jdem.walls import wall_law
 from jdem.kinematics import safe_norm, segment_add
 from jdem.state import Config, Params, State
 from jdem.validate import InputError
@@ -41,14 +42,7 @@ def _stiffness_sums(state: State, params: Params, config: Config):
     k_rot = segment_add(kt * p.radius[i] * arm, i, n) + segment_add(kt * p.radius[j] * arm, j, n)
     w = state.walls
     if w.point.shape[0]:
-        dist = jnp.sum((p.pos[None] - w.point[:, None]) * w.normal[:, None], axis=-1)
-        ov = p.radius[None] - dist
-        touch = w.valid[:, None] & (ov > 0)
-        ov = jnp.where(touch, ov, 0.0)
-        mat_p = jnp.broadcast_to(p.material[None], ov.shape)
-        mat_w = jnp.broadcast_to(w.material[:, None], ov.shape)
-        _, wkn, wkt = contact.normal_law(ov, jnp.broadcast_to(p.radius[None], ov.shape), mat_p,
-                                         mat_w, params, config.contact_model)
+        _, touch, _, wkn, wkt = wall_law(w, p, params, config)
         k_tr = k_tr + jnp.sum(jnp.where(touch, wkn + wkt, 0.0), axis=0)
         k_rot = k_rot + jnp.sum(jnp.where(touch, wkt * p.radius[None] ** 2, 0.0), axis=0)
     b = state.bonds

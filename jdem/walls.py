@@ -24,6 +24,24 @@ from jdem.kinematics import cross_r_f, cross_w_r, dot
 from jdem.state import Config, Params, Particles, Walls
 
 
+def wall_law(walls: Walls, particles: Particles, params: Params, config: Config):
+    """Overlap of every (wall, particle) pair and the contact law there.
+
+    Returns ``(overlap, touching, F_n, k_n, k_t)``, each (W, N); ``overlap`` is 0
+    where not touching.  For Hertz the wall acts as a sphere of infinite radius.
+    """
+    p = particles
+    dist = dot(p.pos[None] - walls.point[:, None, :], walls.normal[:, None, :])  # (W, N)
+    overlap = p.radius[None] - dist
+    touching = walls.valid[:, None] & p.valid[None] & (overlap > 0)
+    overlap = jnp.where(touching, overlap, 0.0)
+    mat_p = jnp.broadcast_to(p.material[None], overlap.shape)
+    mat_w = jnp.broadcast_to(walls.material[:, None], overlap.shape)
+    r_eff = jnp.broadcast_to(p.radius[None], overlap.shape)
+    fn, kn, kt = normal_law(overlap, r_eff, mat_p, mat_w, params, config.contact_model)
+    return overlap, touching, fn, kn, kt
+
+
 def wall_forces(walls: Walls, particles: Particles, params: Params, config: Config):
     """Contact forces between every wall and every particle.
 
@@ -36,21 +54,14 @@ def wall_forces(walls: Walls, particles: Particles, params: Params, config: Conf
         zero_t = jnp.zeros_like(p.ext_torque)
         return walls, jnp.zeros_like(p.pos), zero_t, jnp.zeros(p.pos.shape[:1], jnp.int32)
     normal = walls.normal[:, None, :]  # (W, 1, d)
-    dist = dot(p.pos[None] - walls.point[:, None, :], normal)  # (W, N)
-    overlap = p.radius[None] - dist
-    touching = walls.valid[:, None] & p.valid[None] & (overlap > 0)
-    overlap = jnp.where(touching, overlap, 0.0)
-    mat_p = jnp.broadcast_to(p.material[None], overlap.shape)
-    mat_w = jnp.broadcast_to(walls.material[:, None], overlap.shape)
-    r_eff = jnp.broadcast_to(p.radius[None], overlap.shape)
-    fn, kn, kt = normal_law(overlap, r_eff, mat_p, mat_w, params, config.contact_model)
+    overlap, touching, fn, kn, kt = wall_law(walls, p, params, config)
 
     arm = -(p.radius[None] - 0.5 * overlap)[..., None] * normal  # centre -> contact point
     v_rel = p.vel[None] + cross_w_r(p.angvel[None], arm) - walls.vel[:, None, :]
     approach = -dot(v_rel, normal)  # > 0 when the particle closes on the wall
     v_t = v_rel + approach[..., None] * normal
     fn_total = jnp.where(touching, jnp.maximum(fn + dashpot(kn, p.mass[None], approach, params), 0.0), 0.0)
-    mu = jnp.minimum(params.friction[mat_p], params.friction[mat_w])
+    mu = jnp.minimum(params.friction[p.material][None], params.friction[walls.material][:, None])
     shear = tangential_update(walls.shear, jnp.broadcast_to(normal, walls.shear.shape), v_t, kt,
                               fn, mu, params.dt, touching)
     force_pw = fn_total[..., None] * normal + shear  # on the particle, (W, N, d)
