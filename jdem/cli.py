@@ -2,7 +2,23 @@
 
     jdem demo [--out results/demo] [--small]   first run: single-bond tension and direct
                                                shear (002 §1.3), plots + HDF5
-    jdem bench [...]                           the throughput benchmark (experiments/benchmark.py)
+    jdem ucs [--config file.toml] [--out DIR] [--small]
+                                               uniaxial compression of a bonded rock
+                                               specimen (002 §2): PNG + HDF5
+
+``jdem ucs`` reads an optional TOML file with the sections and keys below (all
+optional; anything else is an error naming the key).  Built-in defaults are the
+seed's 002 §2 test (5 cm x 10 cm, r in [0.228, 0.422] mm, 1 nm per step: hours
+to days on a CPU); ``--small`` starts from a reduced specimen instead (1 cm x
+2 cm, ~500 discs, 2 nm per step: a few minutes), which the file may override.
+
+    [specimen]  width, height [m], r_min, r_max [m], seed (int), porosity (target,
+                omit for the densest packing), coordination (target N-bar, default 5)
+    [material]  E [Pa], nu, T0 [Pa], c0 [Pa], phi_deg, kappa (fracture strain, or a
+                list of them: one batched sweep), density [kg/m^3]
+    [loading]   platen_step [m per step], max_strain, local_damping,
+                stop_stress_ratio (stop once the stress fell below this fraction
+                of the peak; 0 = never), record_every (steps)
 """
 from __future__ import annotations
 
@@ -61,6 +77,199 @@ def demo(out="results/demo", small=False):
     return path
 
 
+# ----------------------------------------------------------------------------- ucs
+UCS_DEFAULTS = {
+    "specimen": dict(width=0.05, height=0.10, r_min=0.228e-3, r_max=0.422e-3, seed=0,
+                     porosity=None, coordination=5.0),
+    "material": dict(E=30e9, nu=0.22, T0=3e6, c0=3e6, phi_deg=30.0, kappa=3e-3,
+                     density=2500.0),
+    "loading": dict(platen_step=1e-9, max_strain=3e-3, local_damping=0.8,
+                    stop_stress_ratio=0.3, record_every=100),
+}
+UCS_SMALL = {
+    "specimen": dict(width=0.01, height=0.02),
+    "loading": dict(platen_step=2e-9, record_every=50),
+}
+
+
+def _number(where, value, *, lo=None, hi=None, lo_open=False, hi_open=False, integer=False):
+    from jdem.validate import InputError
+    import math
+
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or (integer and not isinstance(value, int)):
+        kind = "an integer" if integer else "a number"
+        raise InputError(f"{where} must be {kind}, got {value!r}")
+    if not math.isfinite(value):
+        raise InputError(f"{where} must be finite, got {value!r}")
+    if lo is not None and (value < lo or (lo_open and value == lo)):
+        raise InputError(f"{where} must be {'>' if lo_open else '>='} {lo}, got {value!r}")
+    if hi is not None and (value > hi or (hi_open and value == hi)):
+        raise InputError(f"{where} must be {'<' if hi_open else '<='} {hi}, got {value!r}")
+    return value
+
+
+def ucs_settings(config_path=None, small=False) -> dict:
+    """The settings of ``jdem ucs``: built-in defaults (``--small``: reduced),
+    overridden by the TOML file.  Unknown sections / keys and bad values raise
+    :class:`jdem.validate.InputError` naming the key and the value."""
+    import copy
+    import tomllib
+
+    from jdem.validate import InputError
+
+    cfg = copy.deepcopy(UCS_DEFAULTS)
+    if small:
+        for sec, vals in UCS_SMALL.items():
+            cfg[sec].update(vals)
+    if config_path is not None:
+        path = pathlib.Path(config_path)
+        try:
+            data = tomllib.loads(path.read_text())
+        except FileNotFoundError:
+            raise InputError(f"--config: no such file {path}") from None
+        except tomllib.TOMLDecodeError as e:
+            raise InputError(f"{path}: not valid TOML: {e}") from None
+        for sec, vals in data.items():
+            if sec not in cfg:
+                raise InputError(f"{path}: unknown section [{sec}] (allowed: "
+                                 f"{', '.join(cfg)})")
+            if not isinstance(vals, dict):
+                raise InputError(f"{path}: {sec} must be a table [{sec}], got {vals!r}")
+            for key, value in vals.items():
+                if key not in cfg[sec]:
+                    raise InputError(f"{path}: unknown key {sec}.{key} = {value!r} (allowed in "
+                                     f"[{sec}]: {', '.join(cfg[sec])})")
+                cfg[sec][key] = value
+    sp, mat, ld = cfg["specimen"], cfg["material"], cfg["loading"]
+    for k in ("width", "height", "r_min", "r_max"):
+        _number(f"specimen.{k}", sp[k], lo=0, lo_open=True)
+    if sp["r_min"] > sp["r_max"]:
+        raise InputError(f"specimen.r_min = {sp['r_min']!r} exceeds specimen.r_max = "
+                         f"{sp['r_max']!r}")
+    if 2 * sp["r_max"] * 4 > min(sp["width"], sp["height"]):
+        raise InputError(f"specimen.r_max = {sp['r_max']!r} is too large for a "
+                         f"{sp['width']!r} x {sp['height']!r} specimen (want >= 4 diameters "
+                         f"across)")
+    _number("specimen.seed", sp["seed"], lo=0, integer=True)
+    if sp["porosity"] is not None:
+        _number("specimen.porosity", sp["porosity"], lo=0, hi=1, lo_open=True, hi_open=True)
+    if sp["coordination"] is not None:
+        _number("specimen.coordination", sp["coordination"], lo=0, hi=6, lo_open=True,
+                hi_open=True)
+    _number("material.E", mat["E"], lo=0, lo_open=True)
+    _number("material.nu", mat["nu"], lo=-1, hi=0.5, lo_open=True, hi_open=True)
+    _number("material.T0", mat["T0"], lo=0)
+    _number("material.c0", mat["c0"], lo=0)
+    _number("material.phi_deg", mat["phi_deg"], lo=0, hi=90, hi_open=True)
+    _number("material.density", mat["density"], lo=0, lo_open=True)
+    kap = mat["kappa"]
+    if isinstance(kap, list):
+        if not kap:
+            raise InputError("material.kappa must be a number or a non-empty list, got []")
+        for i, k in enumerate(kap):
+            _number(f"material.kappa[{i}]", k, lo=0)
+    else:
+        _number("material.kappa", kap, lo=0)
+    _number("loading.platen_step", ld["platen_step"], lo=0, lo_open=True)
+    _number("loading.max_strain", ld["max_strain"], lo=0, hi=0.5, lo_open=True)
+    _number("loading.local_damping", ld["local_damping"], lo=0, hi=1, hi_open=True)
+    _number("loading.stop_stress_ratio", ld["stop_stress_ratio"], lo=0, hi=1, hi_open=True)
+    _number("loading.record_every", ld["record_every"], lo=1, integer=True)
+    if labtests_chunk() % ld["record_every"]:
+        raise InputError(f"loading.record_every = {ld['record_every']!r} must divide "
+                         f"{labtests_chunk()} (the steps per chunk)")
+    return cfg
+
+
+def labtests_chunk():
+    from jdem import labtests
+
+    return labtests.UCS_CHUNK_STEPS
+
+
+def _plot_ucs(hist, kappas, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    strain = np.atleast_2d(hist["axial_strain"])
+    stress = np.atleast_2d(hist["axial_stress"])
+    fd = np.atleast_2d(hist["fracture_degree"])
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    ax2 = ax.twinx()
+    for b, k in enumerate(kappas):
+        line, = ax.plot(strain[b] * 1e6, stress[b] / 1e6, lw=1.6, label=f"κ = {k * 100:g} %")
+        ax2.plot(strain[b] * 1e6, fd[b] * 100, ls=":", lw=1, color=line.get_color())
+    ax.set_xlabel("axial strain [10⁻⁶]")
+    ax.set_ylabel("axial stress [MPa]")
+    ax2.set_ylabel("fracture degree [%] (dotted)")
+    ax.set_title("uniaxial compression (002 §2)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def ucs(config=None, out="results/ucs", small=False, progress=True):
+    """``jdem ucs``: generate the specimen, compress it, write ``ucs.png`` and
+    ``ucs.h5`` to ``out``; returns the HDF5 path."""
+    import jax
+    import numpy as np
+
+    # 1 nm platen steps on a 10 cm specimen are below float32 resolution
+    jax.config.update("jax_enable_x64", True)
+    from jdem import io, labtests, specimen
+
+    cfg = ucs_settings(config, small)
+    sp, mat, ld = cfg["specimen"], cfg["material"], cfg["loading"]
+    out = pathlib.Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    print(f"jdem ucs: {sp['width'] * 100:g} cm x {sp['height'] * 100:g} cm specimen, "
+          f"r in [{sp['r_min'] * 1e3:g}, {sp['r_max'] * 1e3:g}] mm")
+    spec = specimen.generate("rectangle", (sp["width"], sp["height"]), sp["r_min"], sp["r_max"],
+                             seed=sp["seed"], density=mat["density"],
+                             target_porosity=sp["porosity"],
+                             target_coordination=sp["coordination"], progress=progress)
+    print(f"  {spec.info['n_particles']} discs, {spec.info['n_bonds']} bonds, porosity "
+          f"{spec.porosity:.3f}, N-bar {spec.coordination:.2f} ({time.time() - t0:.0f} s)")
+    kappas = mat["kappa"] if isinstance(mat["kappa"], list) else [mat["kappa"]]
+    params = labtests.rock_params(2, E=mat["E"], nu=mat["nu"], T0=mat["T0"], c0=mat["c0"],
+                                  phi_deg=mat["phi_deg"], kappa=mat["kappa"],
+                                  local_damping=ld["local_damping"])
+    t1 = time.time()
+    hist, state, config_ = labtests.ucs_test(
+        spec, params, platen_step=ld["platen_step"], max_strain=ld["max_strain"],
+        record_every=ld["record_every"], progress=progress,
+        stop_stress_ratio=ld["stop_stress_ratio"] or None)
+    run_time = time.time() - t1
+    summary = labtests.peak_summary(hist)
+    _plot_ucs(hist, kappas, out / "ucs.png")
+    attrs = {"what": "uniaxial compression, 002 §2", "run_time_s": run_time,
+             "n_particles": int(spec.info["n_particles"]), "porosity": float(spec.porosity),
+             "coordination": float(spec.coordination)}
+    for sec, vals in cfg.items():
+        for k, v in vals.items():
+            attrs[f"{sec}_{k}"] = "none" if v is None else v
+    for k, v in summary.items():
+        attrs[f"summary_{k}"] = np.asarray(v).tolist()
+    path = io.save_run(out / "ucs.h5", state=state, params=params, config=config_,
+                       history=hist, attrs=attrs)
+    for b, k in enumerate(kappas):
+        s = {key: np.atleast_1d(v)[b] for key, v in summary.items()}
+        print(f"  kappa {k * 100:g} %: peak {s['peak_stress'] / 1e6:.2f} MPa at strain "
+              f"{s['critical_strain'] * 1e6:.0f}e-6, E {s['youngs_modulus'] / 1e9:.1f} GPa, "
+              f"fracture degree {s['fracture_degree_at_peak'] * 100:.2f} % (peak) / "
+              f"{s['fracture_degree_end'] * 100:.2f} % (end)")
+    print(f"  {int(np.max(np.asarray(state.step)))} steps in {run_time:.0f} s -> "
+          f"{out / 'ucs.png'}, {path}")
+    return path
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="jdem", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -68,9 +277,22 @@ def main(argv=None):
     d = sub.add_parser("demo", help="first run with built-in defaults: plots + HDF5")
     d.add_argument("--out", default="results/demo")
     d.add_argument("--small", action="store_true", help="coarser loading, for a smoke test")
+    u = sub.add_parser("ucs", help="uniaxial compression of a bonded rock specimen (002 §2)")
+    u.add_argument("--config", default=None, help="TOML file (see `jdem --help`)")
+    u.add_argument("--out", default="results/ucs")
+    u.add_argument("--small", action="store_true",
+                   help="reduced specimen (1 cm x 2 cm, ~500 discs) and a faster platen")
     args = ap.parse_args(argv)
     if args.cmd == "demo":
         demo(args.out, args.small)
+    elif args.cmd == "ucs":
+        from jdem.validate import InputError
+
+        try:
+            ucs(args.config, args.out, args.small)
+        except InputError as e:
+            print(f"jdem ucs: error: {e}", file=sys.stderr)
+            return 2
     return 0
 
 
