@@ -239,6 +239,11 @@ def grid_for(particles: Particles, *, skin, margin=None, extra_bounds=None):
     return tuple(float(v) for v in lo), shape, cell
 
 
+def room_for(need_pairs: int, slack: float = 1.25) -> int:
+    """List rows to allocate for ``need_pairs`` pairs: ``slack`` times as many plus 16."""
+    return int(math.ceil(need_pairs * slack)) + 16
+
+
 def dense_capacity(particles: Particles, dim: int) -> int:
     """Room for a dense packing: ~3 listed pairs per disc, ~7 per sphere."""
     return int(np.sum(np.asarray(particles.valid))) * (3 if dim == 2 else 7)
@@ -265,7 +270,7 @@ def allocate(particles: Particles, config: Config, bonds=None, *, slack=1.25,
     if need_cell > config.max_per_cell:  # the probe could not see pairs in overfull cells
         return allocate(particles, config.replace(max_per_cell=need_cell + 2), bonds,
                         slack=slack, old=old, min_capacity=min_capacity)
-    cap = max(min_capacity, int(math.ceil(need_pairs * slack)) + 16,
+    cap = max(min_capacity, room_for(need_pairs, slack),
               0 if old is None else old.i.shape[-1])
     start = empty(particles, cap) if old is None else _resize(old, cap)
     return build(start, particles, config, bonds), config

@@ -19,7 +19,6 @@
 from __future__ import annotations
 
 import functools
-import math
 from typing import Callable, NamedTuple
 
 import jax
@@ -139,7 +138,7 @@ def advance(state: State, params: Params, config: Config, n_steps, *, batched=Fa
 # ----------------------------------------------------------------------------- host loop
 def _grow(state: State, config: Config, need_pairs: int, need_cell: int, batched: bool):
     """Re-allocate the neighbour list of ``state`` larger and rebuild it."""
-    cap = max(state.contacts.i.shape[-1], int(math.ceil(need_pairs * 1.25)) + 16)
+    cap = max(state.contacts.i.shape[-1], neighbors.room_for(need_pairs))
     config = config.replace(max_per_cell=max(config.max_per_cell, need_cell + 2))
 
     def regrow(contacts, particles, bonds):

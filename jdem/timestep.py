@@ -26,7 +26,7 @@ import numpy as np
 
 from jdem import contact
 from jdem.walls import wall_law
-from jdem.kinematics import safe_norm, segment_add
+from jdem.kinematics import segment_add
 from jdem.state import Config, Params, State
 from jdem.validate import InputError
 
@@ -115,9 +115,9 @@ def scale_density(state: State, params: Params, config: Config, target_dt, *, sa
     """000 §3.3.2 virtual density: raise inertial masses so ``target_dt`` is
     stable with margin ``safety`` (dt <= safety * dt_crit of each particle).
 
-    ``uniform=True`` gives every particle the same inertial mass (the seed's
-    eq 3-30/3-31 form); otherwise each particle is scaled only as much as it
-    needs.  Gravitational mass is untouched.  Quasi-static problems only.
+    By default each particle is scaled only as much as it needs; ``uniform=True``
+    scales every particle by the largest factor any of them needs, keeping the
+    mass ratios.  Gravitational mass is untouched.  Quasi-static problems only.
     """
     p = state.particles
     k_tr, k_rot = _stiffness_sums(state, params, config)
@@ -130,9 +130,3 @@ def scale_density(state: State, params: Params, config: Config, target_dt, *, sa
         factor = jnp.full_like(factor, jnp.max(jnp.where(p.valid, factor, 1.0)))
     factor = jnp.where(p.valid, factor, 1.0)
     return state._replace(particles=p._replace(mass=p.mass * factor, inertia=p.inertia * factor))
-
-
-def max_speed_ratio(state: State, params: Params):
-    """Largest particle displacement per step over its radius (a quasi-static check)."""
-    p = state.particles
-    return jnp.max(jnp.where(p.valid, safe_norm(p.vel) * params.dt / jnp.where(p.radius > 0, p.radius, 1.0), 0.0))

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import jdem
-from jdem import contact, timestep
+from jdem import contact
 
 
 def _collide(pos, radius, vel, params, model, n_steps, density=2500.0):

@@ -252,6 +252,26 @@ def test_time_step_above_critical_is_refused():
                  progress=False)
 
 
+@pytest.mark.parametrize("uniform", [False, True])
+def test_density_scaling_makes_the_requested_step_stable(uniform):
+    """000 §3.3.2: after scaling, dt_target is below safety x the critical step,
+    and the weights (gravitational masses) are unchanged."""
+    pos, rad, (w, h) = _loose_discs(5, 5, gap=-0.1, seed=10)
+    p = jdem.make_particles(pos, rad)
+    params = jdem.make_params(dim=2, kn=1e6, ks=1e6, friction=0.3)
+    state, cfg = jdem.make_state(p, walls=_box_walls((0, 0), (w, h), len(pos)))
+    crit = float(timestep.critical_timestep(state, params, cfg))
+    target = 5 * crit
+    scaled = timestep.scale_density(state, params, cfg, target, safety=0.8, uniform=uniform)
+    assert float(timestep.critical_timestep(scaled, params, cfg)) >= target / 0.8 * (1 - 1e-12)
+    np.testing.assert_array_equal(scaled.particles.gravity_mass, state.particles.gravity_mass)
+    factor = np.asarray(scaled.particles.mass / state.particles.mass)
+    np.testing.assert_allclose(np.asarray(scaled.particles.inertia / state.particles.inertia), factor)
+    assert factor.min() >= 1.0 and factor.max() > 20.0
+    if uniform:
+        np.testing.assert_allclose(factor, factor[0])
+
+
 def test_missing_and_corrupt_files_are_reported(tmp_path):
     with pytest.raises(FileNotFoundError, match="nope.h5"):
         load_run(tmp_path / "nope.h5")

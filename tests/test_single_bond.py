@@ -198,7 +198,7 @@ def test_direct_shear(dim):
 def test_shear_damage(dim):
     """002 eq 10 along the shear curve."""
     h, _, _, p = result("shear", dim)
-    gam, tau, sig_n = h["strain"], h["stress"], h["normal_stress"]
+    gam, sig_n = h["strain"], h["normal_stress"]
     alpha, beta, chi = h["alpha"], h["beta"], h["chi"]
     kb = first_broken(h)
     soft = (beta > 0) & ~h["broken"].astype(bool)
