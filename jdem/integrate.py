@@ -47,9 +47,22 @@ def _expand(mask, like):
     return mask.reshape(mask.shape + (1,) * (like.ndim - mask.ndim))
 
 
-def physics_step(state: State, params: Params, config: Config) -> State:
-    """Advance one step assuming the neighbour list is current."""
+def physics_step(state: State, params: Params, config: Config, boundary=None) -> State:
+    """Advance one step assuming the neighbour list is current.
+
+    ``boundary`` (optional) is a pair ``(fn, data)`` of boundary conditions that
+    act from outside the particle system (e.g. :mod:`jdem.absorbing`):
+    ``fn(state, params, data) -> (state, force)`` is called first; it may set the
+    velocity of prescribed (``fixed_vel``) components, e.g. an input velocity
+    history, and returns an extra force (N, d) [N] that is added to the particle
+    forces like ``ext_force``.  ``data`` is a pytree (traced, differentiable).
+    """
+    if boundary is not None:
+        fn, data = boundary
+        state, extra = fn(state, params, data)
     state, force, torque = forces(state, params, config)
+    if boundary is not None:
+        force = force + extra
     p = state.particles
     force, torque = damping.apply(force, torque, p, params)
     dt = params.dt
@@ -70,13 +83,15 @@ def refresh_neighbors(state: State, config: Config) -> State:
     return state._replace(contacts=contacts)
 
 
-def step(state: State, params: Params, config: Config) -> State:
-    """One full step of one system: neighbour refresh, then physics."""
-    return physics_step(refresh_neighbors(state, config), params, config)
+def step(state: State, params: Params, config: Config, boundary=None) -> State:
+    """One full step of one system: neighbour refresh, then physics
+    (``boundary`` as in :func:`physics_step`)."""
+    return physics_step(refresh_neighbors(state, config), params, config, boundary)
 
 
-def step_batched(state: State, params: Params, config: Config) -> State:
-    """One step of a batch (leading axis on every leaf of ``state`` and ``params``).
+def step_batched(state: State, params: Params, config: Config, boundary=None) -> State:
+    """One step of a batch (leading axis on every leaf of ``state`` and ``params``,
+    and of the boundary data when ``boundary = (fn, data)`` is given).
 
     The whole batch is rebuilt when any member needs it (rebuilding early is
     always correct), so the rebuild sits in one un-batched ``lax.cond``.
@@ -87,4 +102,8 @@ def step_batched(state: State, params: Params, config: Config) -> State:
     contacts = jax.lax.cond(jnp.any(need), lambda c: build(c, state.particles, state.bonds),
                             lambda c: c, state.contacts)
     state = state._replace(contacts=contacts)
-    return jax.vmap(physics_step, in_axes=(0, 0, None))(state, params, config)
+    if boundary is None:
+        return jax.vmap(physics_step, in_axes=(0, 0, None))(state, params, config)
+    fn, data = boundary
+    one = lambda s, p, d: physics_step(s, p, config, (fn, d))
+    return jax.vmap(one)(state, params, data)

@@ -85,7 +85,7 @@ def make_state(particles, config: Config | None = None, *, walls=None, bonds=Non
 
 # ----------------------------------------------------------------------------- pure core
 def rollout(state: State, params: Params, config: Config, n_records: int, record_every: int,
-            observe: Callable | None = None, *, batched=False, checkpoint=True):
+            observe: Callable | None = None, *, batched=False, checkpoint=True, boundary=None):
     """Run ``n_records * record_every`` steps; return ``(state, history)``.
 
     ``observe(state, params, config) -> dict`` is called after every block of
@@ -93,14 +93,15 @@ def rollout(state: State, params: Params, config: Config, n_records: int, record
     ``batched=True`` every leaf of ``state`` and ``params`` has a leading batch
     axis and each history entry has shape ``(n_records, batch, ...)``.
     The neighbour list must be large enough (check ``neighbors.overflowed`` on
-    the result); :func:`run` does that for you.
+    the result); :func:`run` does that for you.  ``boundary = (fn, data)``
+    adds boundary conditions to every step (see :func:`jdem.integrate.physics_step`).
     """
     observe = observe or basic_observables
     step_fn = integrate.step_batched if batched else integrate.step
     obs = jax.vmap(observe, in_axes=(0, 0, None)) if batched else observe
 
     def one_step(s, _):
-        return step_fn(s, params, config), None
+        return step_fn(s, params, config, boundary), None
 
     def block(s, _):
         s, _ = jax.lax.scan(one_step, s, None, length=record_every)
@@ -111,28 +112,36 @@ def rollout(state: State, params: Params, config: Config, n_records: int, record
     return jax.lax.scan(block, state, None, length=n_records)
 
 
+def _with(boundary_fn, data):
+    return None if boundary_fn is None else (boundary_fn, data)
+
+
 @functools.lru_cache(maxsize=64)
-def _compiled_chunk(config, n_records, record_every, observe, batched):
-    def chunk(state, params):
+def _compiled_chunk(config, n_records, record_every, observe, batched, boundary_fn=None):
+    def chunk(state, params, data):
         return rollout(state, params, config, n_records, record_every, observe,
-                       batched=batched, checkpoint=False)
+                       batched=batched, checkpoint=False, boundary=_with(boundary_fn, data))
 
     return jax.jit(chunk)
 
 
 @functools.lru_cache(maxsize=16)
-def _compiled_advance(config, batched):
+def _compiled_advance(config, batched, boundary_fn=None):
     step_fn = integrate.step_batched if batched else integrate.step
 
-    def advance(state, params, n):
-        return jax.lax.fori_loop(0, n, lambda _, s: step_fn(s, params, config), state)
+    def advance(state, params, n, data):
+        return jax.lax.fori_loop(
+            0, n, lambda _, s: step_fn(s, params, config, _with(boundary_fn, data)), state)
 
     return jax.jit(advance)
 
 
-def advance(state: State, params: Params, config: Config, n_steps, *, batched=False) -> State:
+def advance(state: State, params: Params, config: Config, n_steps, *, batched=False,
+            boundary=None) -> State:
     """Take ``n_steps`` steps (jitted once for any count; not reverse-differentiable)."""
-    return _compiled_advance(config, batched)(state, params, jnp.asarray(n_steps, jnp.int32))
+    fn, data = boundary if boundary is not None else (None, None)
+    return _compiled_advance(config, batched, fn)(state, params,
+                                                  jnp.asarray(n_steps, jnp.int32), data)
 
 
 # ----------------------------------------------------------------------------- host loop
@@ -166,7 +175,7 @@ def _check_inputs(state: State, params: Params, config: Config, batched: bool, c
 
 def run(state: State, params: Params, config: Config, n_steps: int, *, record_every: int = 100,
         observe: Callable | None = None, chunk_steps: int | None = None, progress=True,
-        batched=False, check_dt=True, desc="jdem") -> RunResult:
+        batched=False, check_dt=True, desc="jdem", boundary=None) -> RunResult:
     """Run ``n_steps`` steps in jitted chunks; see the module docstring.
 
     n_steps       total steps; must be a multiple of ``record_every``
@@ -177,11 +186,17 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
     chunk_steps   steps per jitted chunk (default about 5,000, a multiple of record_every)
     batched       leading batch axis on state and params (a parameter sweep)
     check_dt      raise if ``params.dt`` exceeds the critical step
+    boundary      optional ``(fn, data)`` boundary conditions applied every step
+                  (see :func:`jdem.integrate.physics_step`); ``fn`` must be a
+                  module-level function so compiled chunks are cached, ``data``
+                  a pytree (batched runs: leading batch axis)
     """
     if n_steps % record_every:
         raise InputError(f"n_steps = {n_steps} must be a multiple of record_every = {record_every}")
     _check_inputs(state, params, config, batched, check_dt)
     params = _strong(params)
+    boundary_fn, data = boundary if boundary is not None else (None, None)
+    data = _strong(data)
     observe = observe or basic_observables
     total_records = n_steps // record_every
     per_chunk = _chunk_records(total_records, max(1, (chunk_steps or 5000) // record_every))
@@ -195,8 +210,8 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
     try:
         while done < total_records:
             n_rec = min(per_chunk, total_records - done)
-            chunk = _compiled_chunk(config, n_rec, record_every, observe, batched)
-            new_state, hist = chunk(state, params)
+            chunk = _compiled_chunk(config, n_rec, record_every, observe, batched, boundary_fn)
+            new_state, hist = chunk(state, params, data)
             if bool(neighbors.overflowed(new_state.contacts, config)):
                 need_pairs = int(jnp.max(new_state.contacts.n_pairs))
                 need_cell = int(jnp.max(new_state.contacts.max_in_cell))
@@ -206,7 +221,8 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
             if np.any(bad >= 0):
                 first = int(np.min(bad[bad >= 0]))
                 start = int(np.min(np.asarray(state.step)))
-                good = advance(state, params, config, first - start, batched=batched)
+                good = advance(state, params, config, first - start, batched=batched,
+                               boundary=_with(boundary_fn, data))
                 raise SimulationDiverged(first, good, _stack(history, batched))
             history.append(jax.tree_util.tree_map(np.asarray, hist))
             state = new_state
