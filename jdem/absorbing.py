@@ -345,6 +345,58 @@ def no_free_field(b: int, dtype) -> FreeField:
                      stress0=jnp.zeros((b, 2), dtype))
 
 
+def free_field_coupling(particles, bonds, bset: BoundarySet, column, *, poisson=0.0) -> FreeField:
+    """Tie the discs of the lateral boundary ``bset`` to a free-field column (001 eq 21).
+
+    ``column`` (K,) are the rows of the column's discs from the bottom up: a
+    one-disc-wide stack, bonded to its neighbours only, carrying the same base
+    input as the main model (its base disc is an input boundary of its own).
+    With fixed rotations such a stack moves exactly like a laterally uniform
+    square arrangement under vertically incident waves.  Each boundary disc is
+    paired with the column disc nearest in height.  ``poisson`` nu gives the
+    column's sigma_xx = nu / (1 - nu) sigma_yy (0 for the seed's nu = 0).
+    """
+    pos = np.asarray(particles.pos, np.float64)
+    col = np.asarray(column, np.int64).reshape(-1)
+    if col.size < 2:
+        raise InputError(f"column must hold at least 2 discs, got {col.size}")
+    if np.any(np.diff(pos[col, 1]) <= 0):
+        raise InputError("column must list its discs from the bottom up")
+    nu = float(require_finite("poisson", poisson))
+    if not -1.0 < nu < 0.5:
+        raise InputError(f"poisson must lie in (-1, 0.5), got {nu!r}")
+    bi, bj = np.asarray(bonds.i), np.asarray(bonds.j)
+    ok = np.asarray(bonds.valid)
+
+    def bond_row(a, b):
+        lo, hi = min(a, b), max(a, b)
+        rows = np.nonzero(ok & (bi == lo) & (bj == hi))[0]
+        return (int(rows[0]), True) if rows.size else (0, False)
+
+    partner = np.array([col[np.argmin(np.abs(pos[col, 1] - pos[k, 1]))] for k in bset.index])
+    k_of = {int(c): k for k, c in enumerate(col)}
+    below, above = [], []
+    for c in partner:
+        k = k_of[int(c)]
+        below.append(bond_row(col[k - 1], c) if k > 0 else (0, False))
+        above.append(bond_row(c, col[k + 1]) if k + 1 < col.size else (0, False))
+    for name, pairs in (("below", below), ("above", above)):
+        for (row, found), c in zip(pairs, partner):
+            if found and not pos[bi[row], 1] < pos[bj[row], 1]:   # column_stress needs i below j
+                raise InputError(f"the column bond {name} disc {c} does not run from the lower "
+                                 f"disc to the upper one; number the column from the bottom up")
+    rad = np.asarray(particles.radius, np.float64)
+    dtype = particles.pos.dtype
+    b = len(bset.index)
+    return FreeField(on=jnp.ones((b,), bool), column=jnp.asarray(partner, jnp.int32),
+                     bond_below=jnp.asarray([r for r, _ in below], jnp.int32),
+                     bond_above=jnp.asarray([r for r, _ in above], jnp.int32),
+                     has_below=jnp.asarray([f for _, f in below]),
+                     has_above=jnp.asarray([f for _, f in above]),
+                     width=jnp.asarray(2.0 * rad[partner], dtype), poisson=jnp.asarray(nu, dtype),
+                     stress0=jnp.zeros((b, 2), dtype))
+
+
 def incident_wave(time, velocity, displacement, direction, dtype=None) -> tuple[History, History]:
     """Incident velocity and displacement histories (K, 2) along the unit vector
     ``direction`` (global frame), e.g. from :func:`cosine_pulse`.  For a P wave
