@@ -1,0 +1,597 @@
+"""Batched parameter sweeps of the platen tests, sharded over devices.
+
+A sweep runs one laboratory test (:mod:`jdem.labtests`: uniaxial or biaxial
+compression, Brazilian splitting) on one specimen for many sets of material
+parameters, as vmapped batches (``jdem.run(batched=True)``), and collects a
+table: the swept parameters, the key figures of every curve
+(:func:`jdem.labtests.peak_summary`) and the curves themselves.
+
+* :func:`grid` and :func:`latin_hypercube` make the samples (dict name -> (n,)).
+* :func:`sweep` runs them and returns a :class:`SweepTable`.
+* :func:`save_sweep` / :func:`load_sweep` write and read the table as HDF5.
+* :func:`plot_sweep` draws a heat map (two parameters on a grid) or a curve
+  (one parameter) of any column.
+
+Parameter names are those of :data:`jdem.calibrate.PARAMETERS` (``E`` [Pa],
+``nu``, ``T0`` [Pa], ``c0`` [Pa], ``phi`` [rad], ``eps_lim``, ``gamma_lim``,
+and the tied pairs ``strength`` (T0 = c0) and ``kappa`` (eps_lim = gamma_lim));
+:func:`jdem.calibrate.material` sets them, so the rock contacts follow E and nu.
+
+Reproducibility.  The whole sweep uses one time step: the recommended step
+(``jdem.timestep.recommended``) of the stiffest sample, i.e. the smallest over
+all samples of the step :func:`jdem.labtests.platen_setup` would choose for it.
+A member's result therefore does not depend on which other members share its
+batch, up to round-off: the neighbour list of a batch is rebuilt when any
+member needs it (the list is kept sorted, so this reorders no sum).
+
+Round-off and chaos.  XLA compiles a batch of one member differently from a
+batch of several, and a sharded program differently from an unsharded one of
+the same local size, which changes the last bits of some intermediate values
+(measured: 1e-26 in an angular velocity after 2 steps).  The explicit dynamics
+of a breaking bonded packing under local (non-viscous) damping amplifies such
+a difference about tenfold every 50 steps, so the post-peak curves of two
+such runs differ visibly (164-disc UCS specimen: identical records up to step
+450, then a 1e-11 relative difference growing to 1-25 % of the post-peak
+stress; the peak stress differs by up to 2 %, the modulus by 3e-11).  Runs
+with the same compiled batch shape are bitwise identical: batches of 2, 3 and
+4 members on one device agree exactly, and a sweep sharded so that every
+device holds one member reproduces a one-device sweep with ``batch_size=1``
+exactly (tests/test_sweep.py).  With smooth damping (``local_damping = 0``,
+dashpots, as in :func:`jdem.difflab.quasi_static_damping`) the amplification
+is far weaker (peak stress 6e-8, modulus 3e-16).
+
+Sharding.  With ``shard=True`` and more than one device, every leaf of a
+batch's state and params is placed with a :class:`jax.sharding.NamedSharding`
+over a 1-D mesh of the devices, split along the leading (batch) axis; the
+jitted chunks of :func:`jdem.run` then run each device's members on that
+device.  Batches are padded to a multiple of the device count (and to one
+common size, so that a single compiled chunk serves the whole sweep) by
+repeating their last sample; the padding is dropped from the table.
+"""
+from __future__ import annotations
+
+import json
+import math
+import pathlib
+import time
+
+import jax
+import numpy as np
+
+from jdem import labtests as lt
+from jdem.calibrate import PARAMETERS, material
+from jdem.simulate import broadcast_batch
+from jdem.validate import InputError, check_params
+
+TESTS = ("ucs", "biaxial", "brazilian")
+
+#: columns taken from :func:`jdem.labtests.peak_summary`
+SUMMARY_COLUMNS = ("peak_stress", "youngs_modulus", "critical_strain", "poisson_ratio",
+                   "fracture_degree_at_peak", "fracture_degree_end", "final_stress")
+
+#: file-format marker of :func:`save_sweep`
+FORMAT = "jdem-sweep"
+FORMAT_VERSION = 1
+
+
+class SweepTable(dict):
+    """The result of :func:`sweep`: a dict of NumPy columns plus ``attrs``.
+
+    Columns (n = number of samples, R = records of the longest curve):
+
+    <parameter>               (n,)   each swept parameter (SI units: Pa, rad, -)
+    peak_stress               (n,)   largest axial stress [Pa] (Brazilian: load
+                                     per metre of thickness [N/m])
+    youngs_modulus            (n,)   slope over 10..40 % of the peak [Pa]
+    critical_strain           (n,)   axial strain at the peak [-]
+    poisson_ratio             (n,)   over the same records [-]
+    fracture_degree_at_peak   (n,)   broken / initial bonds at the peak [-]
+    fracture_degree_end       (n,)   the same at the end of the run [-]
+    final_stress              (n,)   axial stress of the last record [Pa]
+    tensile_strength          (n,)   Brazilian only: 2 P_peak / (pi D t) [Pa], t = 1 m
+    n_records                 (n,)   valid records of each curve
+    strain, stress            (n, R) axial strain [-] and stress [Pa] per record,
+                                     NaN after a member's last record
+
+    ``attrs``: ``test``, ``parameters`` (swept names, in order), ``n_devices``,
+    ``dt`` [s], ``wall_time`` [s], ``batch_size`` (members per compiled batch,
+    padding included), ``n_batches``, ``steps`` (steps per member),
+    ``member_steps_per_second``, ``platen_step`` [m], ``max_strain``,
+    ``confining_stress`` [Pa] (0: none), ``record_every``, ``chunk_steps``,
+    ``n_particles``.
+    """
+
+    def __init__(self, columns=(), attrs=None):
+        super().__init__(columns)
+        self.attrs = dict(attrs or {})
+
+    @property
+    def parameters(self) -> list:
+        """The swept parameter names."""
+        return list(self.attrs.get("parameters", ()))
+
+    def __repr__(self):
+        cols = ", ".join(f"{k}{tuple(np.shape(v))}" for k, v in self.items())
+        return f"SweepTable({cols}; attrs={self.attrs!r})"
+
+
+# ----------------------------------------------------------------------------- samples
+def _axis_values(name, values):
+    a = np.asarray(values, dtype=np.float64)
+    if a.ndim == 0:
+        a = a.reshape(1)
+    if a.ndim != 1 or a.size == 0:
+        raise InputError(f"axis {name!r} must be a non-empty 1-D sequence, got shape {a.shape}")
+    bad = ~np.isfinite(a)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise InputError(f"axis {name!r}[{k}] must be finite, got {a[k]!r}")
+    return a
+
+
+def grid(**axes) -> dict:
+    """Every combination of the given axis values (a full factorial design).
+
+    ``grid(eps_lim=[1e-3, 3e-3], T0=[2e6, 4e6])`` -> ``{"eps_lim": (4,), "T0": (4,)}``
+    with the first axis varying slowest (``numpy.meshgrid(indexing="ij")``
+    order).  Each axis is a 1-D sequence (or a scalar, a fixed value).
+    Returns dict name -> (prod of the axis lengths,) float64 array.
+    """
+    if not axes:
+        raise InputError("grid needs at least one axis, e.g. grid(T0=[2e6, 4e6])")
+    vals = [_axis_values(k, v) for k, v in axes.items()]
+    mesh = np.meshgrid(*vals, indexing="ij")
+    return {k: m.ravel() for k, m in zip(axes, mesh)}
+
+
+def latin_hypercube(n: int, bounds: dict, seed: int = 0, log=None) -> dict:
+    """A Latin-hypercube sample of ``n`` points.
+
+    bounds   name -> (lo, hi), lo < hi, finite
+    seed     seeds ``numpy.random.default_rng``: equal seeds (and bounds in the
+             same order) give identical samples
+    log      names sampled log-uniformly (their bounds must be > 0); ``True``
+             for every name; ``None`` for none
+
+    Each axis is cut into ``n`` strata of equal width (in log space for the
+    ``log`` names); every stratum holds exactly one sample, placed uniformly at
+    random inside it, and the strata are paired across axes by independent
+    random permutations.  Returns dict name -> (n,) float64 array.
+    """
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise InputError(f"n must be an integer >= 1, got {n!r}")
+    if not bounds:
+        raise InputError("latin_hypercube needs bounds, e.g. {'T0': (1e6, 5e6)}")
+    if log is True:
+        log_names = set(bounds)
+    elif log is None or log is False:
+        log_names = set()
+    else:
+        log_names = {log} if isinstance(log, str) else set(log)
+        unknown = log_names - set(bounds)
+        if unknown:
+            raise InputError(f"log names {sorted(unknown)} are not among the bounds "
+                             f"{sorted(bounds)}")
+    rng = np.random.default_rng(seed)
+    out = {}
+    for name, b in bounds.items():
+        try:
+            lo, hi = (float(x) for x in b)
+        except (TypeError, ValueError):
+            raise InputError(f"bounds[{name!r}] must be a pair (lo, hi), got {b!r}") from None
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise InputError(f"bounds[{name!r}] must be finite with lo < hi, got ({lo!r}, {hi!r})")
+        if name in log_names and not lo > 0:
+            raise InputError(f"bounds[{name!r}] = ({lo!r}, {hi!r}): a log-uniform axis needs lo > 0")
+        u = (rng.permutation(n) + rng.random(n)) / n          # one point per stratum of [0, 1)
+        if name in log_names:
+            v = np.exp(math.log(lo) + u * (math.log(hi) - math.log(lo)))
+        else:
+            v = lo + u * (hi - lo)
+        out[name] = np.clip(v, lo, hi)
+    return out
+
+
+# ----------------------------------------------------------------------------- checks
+def _check_samples(samples) -> tuple[dict, int]:
+    if not isinstance(samples, dict) or not samples:
+        raise InputError("samples must be a non-empty dict name -> (n,) values, e.g. "
+                         "sweep.grid(T0=[2e6, 4e6])")
+    unknown = [k for k in samples if k not in PARAMETERS]
+    if unknown:
+        raise InputError(f"unknown parameter(s) {unknown} in samples; choose from "
+                         f"{sorted(PARAMETERS)}")
+    fields = {}
+    for name in samples:
+        for field in PARAMETERS[name]:
+            if field in fields:
+                raise InputError(f"samples {fields[field]!r} and {name!r} both set params.{field}")
+            fields[field] = name
+    out = {}
+    n = None
+    for name, v in samples.items():
+        a = np.asarray(v, dtype=np.float64)
+        if a.ndim != 1 or a.size == 0:
+            raise InputError(f"samples[{name!r}] must be a non-empty 1-D array, got shape {a.shape}")
+        if n is not None and a.size != n:
+            raise InputError(f"samples[{name!r}] has {a.size} values, the others {n}")
+        n = a.size
+        bad = ~np.isfinite(a)
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise InputError(f"samples[{name!r}][{k}] must be finite, got {a[k]!r}")
+        out[name] = a
+    return out, n
+
+
+def _batched_params(base_params, samples: dict, n: int):
+    """``base_params`` repeated n times with the sampled values set; every bad
+    value raises ``InputError`` naming the sample and the field."""
+    if np.ndim(base_params.dt) != 0:
+        raise InputError("base_params must be unbatched (one material; the samples make the "
+                         f"batch), got params.dt of shape {np.shape(base_params.dt)}")
+    check_params(base_params)
+    batch = broadcast_batch(base_params, n)
+    for name, v in samples.items():
+        try:
+            check_params(material(batch, {name: v}))
+        except InputError as e:
+            raise InputError(f"samples[{name!r}]: {e}") from None
+    params = material(batch, samples)
+    check_params(params)
+    return params
+
+
+def _layout(n: int, batch_size: int, n_dev: int) -> tuple[int, int]:
+    """(members per batch, number of batches): as few batches as ``batch_size``
+    allows, balanced, each a multiple of ``n_dev``."""
+    n_batches = math.ceil(n / batch_size)
+    per = math.ceil(n / n_batches)
+    per = math.ceil(per / n_dev) * n_dev
+    return per, math.ceil(n / per)
+
+
+def _batch_indices(n: int, per: int, k: int) -> tuple[np.ndarray, int]:
+    """Sample indices of batch ``k`` padded to ``per`` by repeating its last
+    sample, and the number of real members."""
+    idx = np.arange(k * per, min((k + 1) * per, n))
+    real = idx.size
+    return np.concatenate([idx, np.full(per - real, idx[-1])]), real
+
+
+def _take(tree, idx):
+    return jax.tree_util.tree_map(lambda a: a[idx], tree)
+
+
+def _device_list(devices, shard):
+    if not shard:
+        return None
+    devs = list(jax.devices() if devices is None else devices)
+    if not devs:
+        raise InputError("devices must name at least one device")
+    return devs if len(devs) > 1 else None
+
+
+def _placer(devs):
+    """A function placing a batched pytree on the devices, split along the batch axis."""
+    if devs is None:
+        return lambda tree: tree
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    sharding = NamedSharding(Mesh(np.asarray(devs), ("batch",)), PartitionSpec("batch"))
+    return lambda tree: jax.tree_util.tree_map(lambda a: jax.device_put(a, sharding), tree)
+
+
+# ----------------------------------------------------------------------------- running
+def _setup(test, specimen, params, *, platen_step, confining_stress, preload_steps, dt,
+           record_every, chunk_steps):
+    if test == "brazilian":
+        return lt.platen_setup(specimen, params, test="brazilian", platen_step=platen_step,
+                               dt=dt)
+    return lt.ucs_setup(specimen, params, platen_step=platen_step,
+                        confining_stress=confining_stress, dt=dt, preload_steps=preload_steps,
+                        record_every=record_every, chunk_steps=chunk_steps)
+
+
+def sweep_timestep(specimen, params, *, test="ucs", platen_step=1e-9, confining_stress=None,
+                   batch_size=16) -> float:
+    """The one time step [s] of a sweep: the smallest over the members of
+    batched ``params`` of the step :func:`jdem.labtests.platen_setup` chooses
+    (``jdem.timestep.recommended`` of the critical step with the platens, and
+    for a biaxial test the lateral walls, in contact)."""
+    n = int(np.shape(params.dt)[0])
+    best = np.inf
+    for k in range(math.ceil(n / batch_size)):
+        idx = np.arange(k * batch_size, min((k + 1) * batch_size, n))
+        su = lt.platen_setup(specimen, _take(params, idx), test=test, platen_step=platen_step,
+                             confining_stress=confining_stress, top_stress=confining_stress)
+        best = min(best, float(np.asarray(su.params.dt)[0]))
+    return best
+
+
+def _check_options(test, batch_size, platen_step, max_strain, confining_stress, record_every,
+                   chunk_steps):
+    if test not in TESTS:
+        raise InputError(f"test must be one of {TESTS}, got {test!r}")
+    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
+            or batch_size < 1:
+        raise InputError(f"batch_size must be an integer >= 1, got {batch_size!r}")
+    if np.ndim(platen_step) or not (np.isfinite(platen_step) and platen_step > 0):
+        raise InputError(f"platen_step must be one length > 0 [m], got {platen_step!r}")
+    if not (np.isfinite(max_strain) and max_strain > 0):
+        raise InputError(f"max_strain must be > 0, got {max_strain!r}")
+    if test == "biaxial":
+        if confining_stress is None or not (np.isfinite(confining_stress)
+                                            and confining_stress > 0):
+            raise InputError(f"test='biaxial' needs confining_stress > 0 [Pa], got "
+                             f"{confining_stress!r}")
+    elif confining_stress is not None:
+        raise InputError(f"confining_stress = {confining_stress!r} applies to test='biaxial' "
+                         f"only (test={test!r})")
+    if record_every < 1 or chunk_steps % record_every:
+        raise InputError(f"record_every = {record_every} must divide chunk_steps = {chunk_steps}")
+
+
+def sweep(specimen, base_params, samples: dict, *, test="ucs", batch_size=16, shard=True,
+          devices=None, platen_step=1e-9, max_strain=3e-3, confining_stress=None,
+          preload_steps=20_000, record_every=lt.UCS_RECORD_EVERY,
+          chunk_steps=lt.UCS_CHUNK_STEPS, stop_stress_ratio=None, dt=None, progress=True,
+          out=None) -> SweepTable:
+    """Run one platen test for every sample and tabulate the results.
+
+    specimen        :class:`jdem.specimen.Specimen` (or ``(particles, bonds)``);
+                    a 2D disc for ``test="brazilian"``
+    base_params     unbatched ``Params`` of rock (material 0) and platen
+                    (material 1), e.g. :func:`jdem.labtests.rock_params`
+    samples         dict name -> (n,) values (names from ``jdem.calibrate.PARAMETERS``;
+                    e.g. from :func:`grid` or :func:`latin_hypercube`); each
+                    sample overrides ``base_params`` via ``jdem.calibrate.material``
+    test            "ucs" (free sides), "biaxial" (lateral servo walls at
+                    ``confining_stress`` [Pa] after ``preload_steps`` of isotropic
+                    pre-load) or "brazilian" (diametral compression of a disc)
+    batch_size      most members per vmapped batch (padding excluded)
+    shard           split every batch over ``devices`` (default: all of
+                    ``jax.devices()``) along its batch axis when there are several
+    platen_step     top platen displacement per step [m]
+    max_strain      axial strain to load to (rounded up to whole chunks)
+    record_every, chunk_steps   steps per record and per jitted chunk
+    stop_stress_ratio  stop a batch once all its members fell below this fraction
+                    of their peak (None: run to ``max_strain``); shorter curves
+                    are padded with NaN in the table
+    dt              the time step [s]; default :func:`sweep_timestep` (the
+                    stiffest sample's recommended step), used by every batch
+    progress        a tqdm bar over the batches
+    out             optional HDF5 path: the table is saved there (:func:`save_sweep`)
+
+    Returns a :class:`SweepTable` (columns of shape (n,) and the curves (n, R)).
+    Bad names or values raise ``jdem.validate.InputError`` naming them.
+    """
+    _check_options(test, batch_size, platen_step, max_strain, confining_stress, record_every,
+                   chunk_steps)
+    samples, n = _check_samples(samples)
+    params = _batched_params(base_params, samples, n)
+    t_start = time.perf_counter()
+    if dt is None:
+        dt = sweep_timestep(specimen, params, test=test, platen_step=platen_step,
+                            confining_stress=confining_stress, batch_size=batch_size)
+    elif not (np.isfinite(dt) and dt > 0):
+        raise InputError(f"dt must be > 0 [s] (or None), got {dt!r}")
+    dt = float(dt)
+    devs = _device_list(devices, shard)
+    n_dev = len(devs) if devs else 1
+    place = _placer(devs)
+    per, n_batches = _layout(n, batch_size, n_dev)
+
+    rows, curves = [], []
+    steps = 0
+    n_particles = int(np.sum(np.asarray(lt._specimen_arrays(specimen)[0].valid)))
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n_batches, desc=f"sweep {test}", unit="batch", leave=False)
+    try:
+        for k in range(n_batches):
+            idx, real = _batch_indices(n, per, k)
+            su = _setup(test, specimen, place(_take(params, idx)), platen_step=platen_step,
+                        confining_stress=confining_stress, preload_steps=preload_steps, dt=dt,
+                        record_every=record_every, chunk_steps=chunk_steps)
+            state, bparams = place(su.state), place(su.params)
+            n_steps = math.ceil(max_strain * su.frame.h0 / platen_step / chunk_steps) \
+                * chunk_steps
+            hist, _, _ = lt.platen_run(state, bparams, su.config, su.frame, n_steps,
+                                       record_every=record_every, chunk_steps=chunk_steps,
+                                       batched=True, stop_stress_ratio=stop_stress_ratio,
+                                       desc=test)
+            hist = {key: np.asarray(v)[:real] for key, v in hist.items()}
+            summary = lt.peak_summary(hist)
+            if test == "brazilian":
+                summary["tensile_strength"] = (2.0 * summary["peak_stress"]
+                                               / (np.pi * su.frame.diameter * 1.0))
+            rows.append(summary)
+            curves.append((hist["axial_strain"], hist["axial_stress"]))
+            steps = max(steps, int(np.asarray(hist["step"]).max() - np.asarray(hist["step"]).min()
+                                   + record_every))
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(samples=f"{min((k + 1) * per, n)}/{n}")
+    finally:
+        if bar is not None:
+            bar.close()
+    wall = time.perf_counter() - t_start
+
+    table = SweepTable()
+    for name, v in samples.items():
+        table[name] = v.copy()
+    cols = SUMMARY_COLUMNS + (("tensile_strength",) if test == "brazilian" else ())
+    for c in cols:
+        table[c] = np.concatenate([np.asarray(r[c], np.float64) for r in rows])
+    r_max = max(e.shape[1] for e, _ in curves)
+    table["n_records"] = np.concatenate([np.full(e.shape[0], e.shape[1]) for e, _ in curves])
+    for j, key in enumerate(("strain", "stress")):
+        table[key] = np.concatenate([_pad_nan(c[j], r_max) for c in curves])
+    table.attrs = dict(test=test, parameters=list(samples), n_devices=n_dev, dt=dt,
+                       wall_time=wall, batch_size=per, n_batches=n_batches, steps=steps,
+                       member_steps_per_second=n * steps / wall, platen_step=float(platen_step),
+                       max_strain=float(max_strain),
+                       confining_stress=float(confining_stress or 0.0),
+                       record_every=int(record_every), chunk_steps=int(chunk_steps),
+                       n_particles=n_particles)
+    if out is not None:
+        save_sweep(out, table)
+    return table
+
+
+def _pad_nan(a, r):
+    a = np.asarray(a, np.float64)
+    return np.concatenate([a, np.full((a.shape[0], r - a.shape[1]), np.nan)], axis=1)
+
+
+# ----------------------------------------------------------------------------- HDF5
+def save_sweep(path, table: SweepTable) -> pathlib.Path:
+    """Write a :class:`SweepTable` to HDF5: one dataset per column under
+    ``/table`` (in column order), the attributes on the root (lists and other
+    non-scalars as JSON).  Parent directories are created; an existing file
+    is replaced.  Returns the path."""
+    import h5py
+
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    attrs = dict(getattr(table, "attrs", {}) or {})
+    with h5py.File(path, "w") as f:
+        f.attrs["format"] = FORMAT
+        f.attrs["format_version"] = FORMAT_VERSION
+        json_keys = []
+        for key, value in attrs.items():
+            if isinstance(value, (str, bool, int, float, np.bool_, np.integer, np.floating)):
+                f.attrs[key] = value
+            else:
+                f.attrs[key] = json.dumps(value)
+                json_keys.append(key)
+        f.attrs["_json_attrs"] = json.dumps(json_keys)
+        g = f.create_group("table", track_order=True)
+        for key, value in table.items():
+            g.create_dataset(key, data=np.asarray(value))
+    return path
+
+
+def load_sweep(path) -> SweepTable:
+    """Read a table written by :func:`save_sweep` (columns as NumPy arrays with
+    their stored dtype; attributes as Python values)."""
+    import h5py
+
+    path = pathlib.Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"no such file: {path}")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise InputError(f"cannot open {path} as HDF5: {e}") from None
+    with f:
+        fmt = f.attrs.get("format")
+        if fmt != FORMAT or "table" not in f:
+            raise InputError(f"{path} is not a sweep table (format attribute {fmt!r})")
+        json_keys = set(json.loads(f.attrs.get("_json_attrs", "[]")))
+        attrs = {}
+        for key, value in f.attrs.items():
+            if key in ("format", "format_version", "_json_attrs"):
+                continue
+            value = value.item() if isinstance(value, np.generic) else value
+            attrs[key] = json.loads(value) if key in json_keys else value
+        columns = {key: np.asarray(ds[()]) for key, ds in f["table"].items()}
+    return SweepTable(columns, attrs)
+
+
+# ----------------------------------------------------------------------------- plots
+#: axis labels and the factor converting SI to the plotted unit
+_UNITS = {
+    "E": ("E [GPa]", 1e-9), "T0": ("T0 [MPa]", 1e-6), "c0": ("c0 [MPa]", 1e-6),
+    "strength": ("T0 = c0 [MPa]", 1e-6), "phi": ("phi [deg]", 180.0 / np.pi),
+    "eps_lim": ("eps_lim [-]", 1.0), "gamma_lim": ("gamma_lim [-]", 1.0),
+    "kappa": ("kappa [-]", 1.0), "nu": ("nu [-]", 1.0),
+    "peak_stress": ("peak stress [MPa]", 1e-6), "final_stress": ("final stress [MPa]", 1e-6),
+    "tensile_strength": ("tensile strength [MPa]", 1e-6),
+    "youngs_modulus": ("Young's modulus [GPa]", 1e-9),
+    "critical_strain": ("critical strain [1e-3]", 1e3),
+    "poisson_ratio": ("Poisson ratio [-]", 1.0),
+    "fracture_degree_at_peak": ("fracture degree at peak [-]", 1.0),
+    "fracture_degree_end": ("fracture degree at end [-]", 1.0),
+}
+
+
+def _label(name):
+    return _UNITS.get(name, (name, 1.0))
+
+
+def _column(table, name, what):
+    if name not in table:
+        raise InputError(f"{what} {name!r} is not a column of the table; columns: "
+                         f"{sorted(k for k in table if np.ndim(table[k]) == 1)}")
+    a = np.asarray(table[name], np.float64)
+    if a.ndim != 1:
+        raise InputError(f"{what} {name!r} has shape {a.shape}; plot_sweep needs a (n,) column")
+    return a
+
+
+def plot_sweep(table, x, y=None, value="peak_stress", ax=None, path=None):
+    """Plot a column of a sweep table against one or two swept parameters.
+
+    x, y     column names (usually swept parameters).  With ``y``: a heat map
+             of ``value`` over the (x, y) grid when every combination of the
+             distinct x and y values occurs exactly once, otherwise a scatter
+             plot coloured by ``value``.  Without ``y``: ``value`` against x,
+             a line with markers when x values are distinct, else a scatter.
+    value    the column to show (default ``peak_stress``)
+    ax       a matplotlib Axes to draw on; default a new Agg figure
+    path     write the figure as PNG there
+
+    Units: stresses in MPa, moduli in GPa, strains as given (critical strain
+    in 1e-3).  Returns the Axes.
+    """
+    xs = _column(table, x, "x")
+    vs = _column(table, value, "value")
+    if ax is None:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        fig = Figure(figsize=(5.5, 4.2))
+        FigureCanvasAgg(fig)
+        ax = fig.add_subplot()
+    fig = ax.figure
+    vlabel, vscale = _label(value)
+    xlabel, xscale = _label(x)
+    if y is None:
+        order = np.argsort(xs, kind="stable")
+        if np.unique(xs).size == xs.size:
+            ax.plot(xs[order] * xscale, vs[order] * vscale, "o-")
+        else:
+            ax.scatter(xs * xscale, vs * vscale)
+        ax.set_ylabel(vlabel)
+    else:
+        ys = _column(table, y, "y")
+        ylabel, yscale = _label(y)
+        ux, uy = np.unique(xs), np.unique(ys)
+        ix, iy = np.searchsorted(ux, xs), np.searchsorted(uy, ys)
+        cells = np.full((uy.size, ux.size), np.nan)
+        count = np.zeros((uy.size, ux.size), int)
+        np.add.at(count, (iy, ix), 1)
+        if np.all(count == 1):
+            cells[iy, ix] = vs * vscale
+            im = ax.imshow(cells, origin="lower", aspect="auto", cmap="viridis")
+            ax.set_xticks(range(ux.size), [f"{v * xscale:.3g}" for v in ux])
+            ax.set_yticks(range(uy.size), [f"{v * yscale:.3g}" for v in uy])
+            for (j, i), c in np.ndenumerate(cells):
+                ax.text(i, j, f"{c:.3g}", ha="center", va="center", fontsize=8,
+                        color="w" if c < np.nanmean(cells) else "k")
+        else:
+            im = ax.scatter(xs * xscale, ys * yscale, c=vs * vscale, cmap="viridis")
+        fig.colorbar(im, ax=ax, label=vlabel)
+        ax.set_ylabel(ylabel)
+    ax.set_xlabel(xlabel)
+    ax.set_title(f"{table.attrs.get('test', 'sweep') if hasattr(table, 'attrs') else 'sweep'}: "
+                 f"{vlabel.split(' [')[0]}")
+    if path is not None:
+        path = pathlib.Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path, dpi=120, bbox_inches="tight")
+    return ax
