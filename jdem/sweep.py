@@ -125,7 +125,7 @@ def _axis_values(name, values):
     bad = ~np.isfinite(a)
     if bad.any():
         k = int(np.argmax(bad))
-        raise InputError(f"axis {name!r}[{k}] must be finite, got {a[k]!r}")
+        raise InputError(f"axis {name!r}[{k}] must be finite, got {float(a[k])!r}")
     return a
 
 
@@ -219,7 +219,7 @@ def _check_samples(samples) -> tuple[dict, int]:
         bad = ~np.isfinite(a)
         if bad.any():
             k = int(np.argmax(bad))
-            raise InputError(f"samples[{name!r}][{k}] must be finite, got {a[k]!r}")
+            raise InputError(f"samples[{name!r}][{k}] must be finite, got {float(a[k])!r}")
         out[name] = a
     return out, n
 
