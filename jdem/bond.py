@@ -281,8 +281,19 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     twist = jnp.where(carry_m, twist_tr, 0.0)
     bend = jnp.where(carry_m.reshape(carry_m.shape + (1,) * (bend_tr.ndim - 1)), bend_tr, 0.0)
 
+    # ---- bond dashpots (Params.bond_damping) ----------------------------------
+    # Viscous forces on the relative motion of intact bonds, 2 zeta sqrt(m* K)
+    # times the rate (000 eq 3-1); applied to the particles but not stored, so the
+    # elastic-plastic history above is untouched.
+    live = valid & ~was_broken
+    m1_, m2_ = particles.mass[i], particles.mass[j]
+    m_eff = jnp.where(live, m1_ * m2_ / _den(m1_ + m2_), 0.0)
+    visc = lambda k: 2.0 * params.bond_damping * jnp.sqrt(jnp.where(live, m_eff * k, 1.0)) / dt
+    fn_d = jnp.where(live, visc(kn) * du_n, 0.0)            # compression positive
+    fs_d = jnp.where(live[:, None], -visc(ks)[:, None] * d_us, 0.0)
+
     # ---- back onto the particles (002 eq 13) ----------------------------------
-    f1 = z(-fn[:, None] * n + fs)                      # force on particle 1
+    f1 = z(-(fn + fn_d)[:, None] * n + fs + fs_d)      # force on particle 1
     m1 = twist[:, None] * n + bend if dim == 3 else bend
     t1 = cross_r_f(r1, f1) + m1
     t2 = cross_r_f(r2, -f1) - m1

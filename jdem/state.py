@@ -205,6 +205,11 @@ class Params(NamedTuple):
     bond_friction_angle () internal friction angle phi [rad] (002 eq 8)
     bond_tensile_strain () tensile fracture strain eps_lim (002 eq 6)
     bond_shear_strain   () shear fracture strain gamma_lim (002 eq 8)
+    bond_damping     ()    normal and shear dashpots of intact bonds as a fraction of
+                           critical, 2 zeta sqrt(m* K) (000 eq 3-1 applied to the bar
+                           stiffnesses); damps relative motion only, so it neither
+                           resists rigid motion nor adds a loading-rate stress at
+                           quasi-static rates (0 = none)
     """
 
     dt: Array
@@ -224,6 +229,7 @@ class Params(NamedTuple):
     bond_friction_angle: Array
     bond_tensile_strain: Array
     bond_shear_strain: Array
+    bond_damping: Array
 
 
 CONTACT_MODELS = ("linear", "hertz")
@@ -284,7 +290,7 @@ def make_params(dim: int = 2, n_materials: int = 1, *, dt: float = 1e-6,
                 contact_damping=0.0, local_damping=0.0, viscous_damping=0.0,
                 bond_youngs=10e9, bond_poisson=0.22, bond_tensile=3e6, bond_cohesion=3e6,
                 bond_friction_angle=np.deg2rad(30.0), bond_tensile_strain=1e-3,
-                bond_shear_strain=3e-3, dtype=None) -> Params:
+                bond_shear_strain=3e-3, bond_damping=0.0, dtype=None) -> Params:
     """Build a ``Params`` with every field a JAX array of the default float dtype.
 
     Per-material values may be scalars (broadcast to ``n_materials``) or sequences.
@@ -305,7 +311,8 @@ def make_params(dim: int = 2, n_materials: int = 1, *, dt: float = 1e-6,
         viscous_damping=f(viscous_damping), bond_youngs=f(bond_youngs),
         bond_poisson=f(bond_poisson), bond_tensile=f(bond_tensile),
         bond_cohesion=f(bond_cohesion), bond_friction_angle=f(bond_friction_angle),
-        bond_tensile_strain=f(bond_tensile_strain), bond_shear_strain=f(bond_shear_strain))
+        bond_tensile_strain=f(bond_tensile_strain), bond_shear_strain=f(bond_shear_strain),
+        bond_damping=f(bond_damping))
     check_params(params, dim)
     return params
 

@@ -74,7 +74,8 @@ def check_params(params, dim=None):
     for name in ("kn", "ks", "youngs", "bond_youngs"):
         require_positive(f"params.{name}", getattr(params, name))
     for name in ("friction", "contact_damping", "viscous_damping", "bond_tensile",
-                 "bond_cohesion", "bond_tensile_strain", "bond_shear_strain"):
+                 "bond_cohesion", "bond_tensile_strain", "bond_shear_strain",
+                 "bond_damping"):
         require_positive(f"params.{name}", getattr(params, name), allow_zero=True)
     require_range("params.local_damping", params.local_damping, 0.0, 1.0)
     require_range("params.poisson", params.poisson, -1.0, 0.5)

@@ -1,0 +1,405 @@
+"""Calibration of micro-parameters against stress-strain curves, and batched sweeps.
+
+* :func:`material` sets named material parameters on a ``Params`` consistently
+  (the unbonded rock contacts follow the bond's E and nu as in
+  :func:`jdem.labtests.rock_params`).
+* :func:`load_target` reads a target curve (arrays, a dict, a CSV file).
+* :func:`curve_loss` compares a simulated curve with a target sampled at other
+  strains: interpolation onto common strains, weighting of the pre-peak and
+  post-peak parts, peak-stress and modulus terms.
+* :func:`calibrate` fits chosen parameters with an optax optimiser (Adam) through
+  ``jax.grad`` of the differentiable UCS test (:mod:`jdem.difflab`), in a
+  bounded log space, with early stopping; the result saves to HDF5.  With a
+  model built on several packings (an ensemble) the loss is averaged over them.
+* :func:`sweep` runs any platen test (:mod:`jdem.labtests`) over a grid or a
+  Latin-hypercube sample of parameters as vmapped batches, optionally sharded
+  over all devices; :func:`save_sweep` / :func:`load_sweep` / :func:`plot_sweep`.
+
+Named parameters (``PARAMETERS``): ``E`` bond Young's modulus [Pa], ``nu``,
+``T0`` tensile strength [Pa], ``c0`` cohesion [Pa], ``phi`` friction angle
+[rad], ``eps_lim`` / ``gamma_lim`` tensile / shear fracture strains, and the
+tied pairs ``strength`` (T0 = c0) and ``kappa`` (eps_lim = gamma_lim, 002 §2.1).
+"""
+from __future__ import annotations
+
+import csv
+import math
+import pathlib
+import time
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jdem.state import Params
+from jdem.validate import InputError
+
+#: name -> the Params fields it sets
+PARAMETERS = {
+    "E": ("bond_youngs",),
+    "nu": ("bond_poisson",),
+    "T0": ("bond_tensile",),
+    "c0": ("bond_cohesion",),
+    "phi": ("bond_friction_angle",),
+    "eps_lim": ("bond_tensile_strain",),
+    "gamma_lim": ("bond_shear_strain",),
+    "strength": ("bond_tensile", "bond_cohesion"),
+    "kappa": ("bond_tensile_strain", "bond_shear_strain"),
+}
+
+#: default bounds as factors of the starting value (log space), or absolute
+DEFAULT_BOUNDS = {"nu": (0.0, 0.45), "phi": (0.0, np.deg2rad(60.0))}
+DEFAULT_FACTOR = 5.0
+
+
+def _check_names(names):
+    for n in names:
+        if n not in PARAMETERS:
+            raise InputError(f"unknown parameter {n!r}; choose from {sorted(PARAMETERS)}")
+
+
+def material(params: Params, values: dict) -> Params:
+    """``params`` with the named values set (``PARAMETERS``); traceable.
+
+    When ``E`` or ``nu`` change, the rock contacts (material 0) follow as in
+    :func:`jdem.labtests.rock_params`: kn scales with E, ks = kn / (2 (1 + nu)).
+    """
+    _check_names(values)
+    new = {}
+    for name, v in values.items():
+        for field in PARAMETERS[name]:
+            new[field] = jnp.asarray(v, jnp.asarray(getattr(params, field)).dtype)
+    out = params._replace(**new)
+    if "E" in values or "nu" in values:
+        kn0 = params.kn[..., 0] * out.bond_youngs / params.bond_youngs
+        ks0 = kn0 / (2.0 * (1.0 + out.bond_poisson))
+        out = out._replace(kn=out.kn.at[..., 0].set(kn0), ks=out.ks.at[..., 0].set(ks0))
+    return out
+
+
+def values_of(params: Params, names) -> dict:
+    """The named values of ``params`` (first field of each name) as floats."""
+    _check_names(names)
+    return {n: float(np.asarray(getattr(params, PARAMETERS[n][0]))) for n in names}
+
+
+# ----------------------------------------------------------------------------- target curves
+class Target(NamedTuple):
+    """A target curve and its key figures (NumPy; strain ascending).
+
+    strain, stress    (K,) [-], [Pa]
+    peak_stress, peak_strain
+    modulus           least-squares slope over 10 %..40 % of the peak, pre-peak
+    modulus_window    (lo, hi) strains of that fit
+    """
+
+    strain: np.ndarray
+    stress: np.ndarray
+    peak_stress: float
+    peak_strain: float
+    modulus: float
+    modulus_window: tuple
+
+
+def load_target(source, *, strain_column=0, stress_column=1) -> Target:
+    """A :class:`Target` from ``(strain, stress)`` arrays, a dict with ``strain``
+    and ``stress`` (e.g. a simulated curve or history; ``axial_strain`` /
+    ``axial_stress`` also work), or a CSV file of two columns (strain, stress in
+    Pa; a header line is allowed).  Malformed input raises ``InputError``."""
+    if isinstance(source, (str, pathlib.Path)):
+        strain, stress = _read_csv(pathlib.Path(source), strain_column, stress_column)
+    elif isinstance(source, dict):
+        key_e = "strain" if "strain" in source else "axial_strain"
+        key_s = "stress" if "stress" in source else "axial_stress"
+        if key_e not in source or key_s not in source:
+            raise InputError(f"target dict needs 'strain' and 'stress', got keys {sorted(source)}")
+        strain, stress = source[key_e], source[key_s]
+    else:
+        try:
+            strain, stress = source
+        except (TypeError, ValueError):
+            raise InputError("target must be (strain, stress) arrays, a dict or a CSV path, "
+                             f"got {type(source).__name__}") from None
+    strain = np.asarray(strain, np.float64).ravel()
+    stress = np.asarray(stress, np.float64).ravel()
+    if strain.shape != stress.shape:
+        raise InputError(f"target strain and stress differ in length: {strain.size} vs "
+                         f"{stress.size}")
+    if strain.size < 5:
+        raise InputError(f"target curve needs at least 5 points, got {strain.size}")
+    for name, a in (("strain", strain), ("stress", stress)):
+        if not np.all(np.isfinite(a)):
+            k = int(np.argmin(np.isfinite(a)))
+            raise InputError(f"target {name}[{k}] = {a[k]!r} is not finite")
+    if np.any(np.diff(strain) <= 0):
+        k = int(np.argmin(np.diff(strain) > 0))
+        raise InputError(f"target strain must increase: strain[{k + 1}] = {strain[k + 1]!r} "
+                         f"after {strain[k]!r}")
+    k = int(np.argmax(stress))
+    peak = float(stress[k])
+    if not peak > 0:
+        raise InputError(f"target stress has no positive peak (max {peak!r})")
+    lo, hi = 0.1 * peak, 0.4 * peak
+    sel = (stress[:k + 1] >= lo) & (stress[:k + 1] <= hi)
+    if sel.sum() >= 2:
+        e_sel = strain[:k + 1][sel]
+        modulus = float(np.polyfit(e_sel, stress[:k + 1][sel], 1)[0])
+        window = (float(e_sel.min()), float(e_sel.max()))
+    else:
+        modulus, window = peak / max(float(strain[k]), 1e-300), (0.0, float(strain[k]))
+    return Target(strain, stress, peak, float(strain[k]), modulus, window)
+
+
+def _read_csv(path, ce, cs):
+    if not path.exists():
+        raise InputError(f"target file {str(path)!r} does not exist")
+    rows = []
+    with open(path, newline="") as f:
+        for n, row in enumerate(csv.reader(f)):
+            if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
+                continue
+            try:
+                rows.append((float(row[ce]), float(row[cs])))
+            except ValueError:
+                if rows:   # only the first line may be a header
+                    raise InputError(f"{path}: line {n + 1} is not two numbers: {row!r}") from None
+            except IndexError:
+                raise InputError(f"{path}: line {n + 1} has {len(row)} column(s), need "
+                                 f"{max(ce, cs) + 1}: {row!r}") from None
+    if not rows:
+        raise InputError(f"{path} holds no (strain, stress) rows")
+    a = np.asarray(rows)
+    return a[:, 0], a[:, 1]
+
+
+# ----------------------------------------------------------------------------- loss
+class LossWeights(NamedTuple):
+    """Weights of :func:`curve_loss` (each term is dimensionless)."""
+
+    pre_peak: float = 1.0
+    post_peak: float = 1.0
+    peak: float = 1.0
+    modulus: float = 1.0
+
+
+def curve_loss(strain, stress, target: Target, weights: LossWeights = LossWeights()):
+    """Mismatch of a simulated curve ``(strain, stress)`` (R,) with ``target``.
+
+    The simulated stress is interpolated (linearly) onto the target strains
+    inside the simulated range; the squared differences, divided by the target
+    peak squared, are averaged with weight ``pre_peak`` up to the target's peak
+    strain and ``post_peak`` after it.  Added: ``peak`` x (relative peak-stress
+    error)^2 and ``modulus`` x (relative error of the slope over the target's
+    10 %..40 % window)^2.  Differentiable in ``stress``; works on one curve
+    (use ``jax.vmap`` for several).
+    """
+    et = jnp.asarray(target.strain)
+    st = jnp.asarray(target.stress)
+    inside = (et >= strain[0]) & (et <= strain[-1])
+    sim = jnp.interp(et, strain, stress)
+    w = jnp.where(et <= target.peak_strain, weights.pre_peak, weights.post_peak) * inside
+    curve = jnp.sum(w * (sim - st) ** 2) / jnp.maximum(jnp.sum(w), 1e-300) / target.peak_stress**2
+    peak = (jnp.max(stress) / target.peak_stress - 1.0) ** 2
+    lo, hi = target.modulus_window
+    sel = (strain >= lo) & (strain <= hi)
+    n = jnp.maximum(jnp.sum(sel), 1)
+    em = jnp.sum(jnp.where(sel, strain, 0.0)) / n
+    sm = jnp.sum(jnp.where(sel, stress, 0.0)) / n
+    slope = (jnp.sum(jnp.where(sel, (strain - em) * (stress - sm), 0.0))
+             / jnp.maximum(jnp.sum(jnp.where(sel, (strain - em) ** 2, 0.0)), 1e-300))
+    modulus = (slope / target.modulus - 1.0) ** 2
+    return curve + weights.peak * peak + weights.modulus * modulus
+
+
+# ----------------------------------------------------------------------------- bounded transform
+def _bounds_for(name, start, bounds):
+    if bounds and name in bounds:
+        lo, hi = (float(b) for b in bounds[name])
+    elif name in DEFAULT_BOUNDS:
+        lo, hi = DEFAULT_BOUNDS[name]
+    else:
+        lo, hi = start / DEFAULT_FACTOR, start * DEFAULT_FACTOR
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+        raise InputError(f"bounds of {name!r} must be finite with lo < hi, got ({lo!r}, {hi!r})")
+    if not lo < start < hi:
+        raise InputError(f"start value of {name!r} = {start!r} is outside its bounds "
+                         f"({lo!r}, {hi!r})")
+    return lo, hi
+
+
+def _to_value(u, lo, hi):
+    """Internal (unbounded) -> value: log-uniform between lo > 0 and hi, linear if lo <= 0."""
+    s = jax.nn.sigmoid(u)
+    if lo > 0:
+        return jnp.exp(math.log(lo) + s * (math.log(hi) - math.log(lo)))
+    return lo + s * (hi - lo)
+
+
+def _to_internal(v, lo, hi):
+    s = (math.log(v / lo) / math.log(hi / lo)) if lo > 0 else (v - lo) / (hi - lo)
+    return math.log(s / (1.0 - s))
+
+
+# ----------------------------------------------------------------------------- calibrate
+class CalibrationResult(NamedTuple):
+    """values   fitted parameters (name -> float), the best iterate
+    loss       its loss
+    start      the starting values
+    history    dict: ``loss`` (S,), ``<name>`` (S,) values per iteration
+    steps      optimiser steps taken; ``converged``: stopped by ``tol``/``patience``
+    params     ``Params`` with the fitted values
+    curves     dict: ``target_strain``, ``target_stress`` and the simulated
+               ``strain``, ``start_stress``, ``fit_stress`` (members x records for
+               an ensemble)
+    wall_time  seconds"""
+
+    values: dict
+    loss: float
+    start: dict
+    history: dict
+    steps: int
+    converged: bool
+    params: Params
+    curves: dict
+    wall_time: float
+
+
+def calibration_loss(params: Params, model, target: Target, weights=LossWeights()):
+    """Loss of ``params`` on a :class:`jdem.difflab.CurveModel` (mean over an
+    ensemble's members) and the curve dict."""
+    from jdem.difflab import simulate_curve
+
+    out = simulate_curve(params, model)
+    if model.spec.ensemble:
+        losses = jax.vmap(lambda e, s: curve_loss(e, s, target, weights))(out["strain"],
+                                                                          out["stress"])
+        return jnp.mean(losses), out
+    return curve_loss(out["strain"], out["stress"], target, weights), out
+
+
+def calibrate(model, params: Params, target, start: dict, *, bounds=None, steps=100,
+              learning_rate=0.05, weights=LossWeights(), tol=1e-5, patience=15,
+              min_improvement=1e-3, progress=True, out=None):
+    """Fit the named parameters of ``start`` to ``target`` by gradient descent.
+
+    model          :class:`jdem.difflab.CurveModel` from :func:`jdem.difflab.ucs_model`
+                   (one packing or an ensemble)
+    params         its ``Params`` (as returned by ``ucs_model``)
+    target         anything :func:`load_target` takes
+    start          name -> starting value (names from ``PARAMETERS``)
+    bounds         name -> (lo, hi); default: ``DEFAULT_BOUNDS`` or start / 5 .. start x 5.
+                   The optimiser works on u with value = lo (hi/lo)^sigmoid(u)
+                   (log space; linear when lo <= 0), so bounds always hold
+    steps          at most this many Adam steps (optax) of size ``learning_rate`` in u
+    tol            stop when the loss falls below it
+    patience       stop when the best loss has not improved by a fraction
+                   ``min_improvement`` for this many steps
+    out            optional HDF5 path for the result (:func:`save_calibration`)
+    """
+    import optax
+
+    from jdem.difflab import checked_curve, grow
+
+    target = target if isinstance(target, Target) else load_target(target)
+    _check_names(start)
+    names = list(start)
+    lims = {n: _bounds_for(n, float(start[n]), bounds) for n in names}
+    u = {n: jnp.asarray(_to_internal(float(start[n]), *lims[n])) for n in names}
+    curve0, model = checked_curve(material(params, start), model)
+
+    def loss_fn(u):
+        vals = {n: _to_value(u[n], *lims[n]) for n in names}
+        loss, out = calibration_loss(material(params, vals), model, target, weights)
+        return loss, (out["overflowed"], out["first_bad_step"])
+
+    opt = optax.adam(learning_rate)
+    state = opt.init(u)
+    grad_fn = jax.jit(jax.value_and_grad(loss_fn, has_aux=True))
+    hist = {"loss": []}
+    hist.update({n: [] for n in names})
+    best = (np.inf, dict(start))
+    since_best = 0
+    converged = False
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=steps, desc="calibrate", unit="it", leave=False)
+    t0 = time.time()
+    k = 0
+    try:
+        while k < steps:
+            (loss, (over, bad)), g = grad_fn(u)
+            if bool(over):
+                model = grow(model)
+                grad_fn = jax.jit(jax.value_and_grad(loss_fn, has_aux=True))
+                continue
+            if int(bad) >= 0 or not np.isfinite(float(loss)):
+                raise RuntimeError(f"calibration step {k}: the test diverged at step {int(bad)} "
+                                   f"(loss {float(loss)!r}); narrow the bounds")
+            vals = {n: float(_to_value(u[n], *lims[n])) for n in names}
+            loss = float(loss)
+            hist["loss"].append(loss)
+            for n in names:
+                hist[n].append(vals[n])
+            if loss < best[0] * (1.0 - min_improvement):
+                since_best = 0
+            else:
+                since_best += 1
+            if loss < best[0]:
+                best = (loss, vals)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss:.3g}")
+            k += 1
+            if loss < tol or since_best >= patience:
+                converged = True
+                break
+            updates, state = opt.update(g, state, u)
+            u = optax.apply_updates(u, updates)
+    finally:
+        if bar is not None:
+            bar.close()
+    fitted = material(params, best[1])
+    curve1, model = checked_curve(fitted, model)
+    curves = dict(target_strain=target.strain, target_stress=target.stress,
+                  strain=curve0["strain"], start_stress=curve0["stress"],
+                  fit_stress=curve1["stress"])
+    res = CalibrationResult(values=best[1], loss=best[0], start=dict(start),
+                            history={k_: np.asarray(v) for k_, v in hist.items()}, steps=k,
+                            converged=converged, params=fitted, curves=curves,
+                            wall_time=time.time() - t0)
+    if out is not None:
+        save_calibration(out, res)
+    return res
+
+
+def save_calibration(path, res: CalibrationResult):
+    """Write a :class:`CalibrationResult` to HDF5 (``jdem.io.save_run``: params,
+    history = loss/parameter history and curves, attrs = fitted and start values)."""
+    from jdem import io
+
+    history = {f"iter_{k}": v for k, v in res.history.items()}
+    history.update(res.curves)
+    attrs = {f"fit_{k}": v for k, v in res.values.items()}
+    attrs.update({f"start_{k}": v for k, v in res.start.items()})
+    attrs.update(loss=res.loss, steps=res.steps, converged=res.converged,
+                 wall_time=res.wall_time)
+    return io.save_run(path, params=res.params, history=history, attrs=attrs)
+
+
+def load_calibration(path) -> dict:
+    """``{values, start, loss, steps, converged, history, curves, params}`` from
+    :func:`save_calibration`."""
+    from jdem import io
+
+    rd = io.load_run(path)
+    a = rd.attrs or {}
+    hist = rd.history or {}
+    return dict(values={k[4:]: float(v) for k, v in a.items() if k.startswith("fit_")},
+                start={k[6:]: float(v) for k, v in a.items() if k.startswith("start_")},
+                loss=float(a["loss"]), steps=int(a["steps"]), converged=bool(a["converged"]),
+                history={k[5:]: v for k, v in hist.items() if k.startswith("iter_")},
+                curves={k: v for k, v in hist.items() if not k.startswith("iter_")},
+                params=rd.params)
