@@ -32,11 +32,11 @@ of a breaking bonded packing under local (non-viscous) damping amplifies such
 a difference about tenfold every 50 steps, so the post-peak curves of two
 such runs differ visibly (164-disc UCS specimen: identical records up to step
 450, then a 1e-11 relative difference growing to 1-25 % of the post-peak
-stress; the peak stress differs by up to 2 %, the modulus by 3e-11).  Runs
-with the same compiled batch shape are bitwise identical: batches of 2, 3 and
-4 members on one device agree exactly, and a sweep sharded so that every
-device holds one member reproduces a one-device sweep with ``batch_size=1``
-exactly (tests/test_sweep.py).  With smooth damping (``local_damping = 0``,
+stress; the peak stress differs by up to 2 %, the modulus by 1e-9).  On one
+device, batches of 2, 3 and 4 copies of a sample gave bitwise-identical
+members, and a sweep sharded so that every device holds one member
+reproduces a one-device sweep with ``batch_size=1`` bitwise
+(tests/test_sweep.py).  With smooth damping (``local_damping = 0``,
 dashpots, as in :func:`jdem.difflab.quasi_static_damping`) the amplification
 is far weaker (peak stress 6e-8, modulus 3e-16).
 
