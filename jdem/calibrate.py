@@ -11,9 +11,8 @@
   ``jax.grad`` of the differentiable UCS test (:mod:`jdem.difflab`), in a
   bounded log space, with early stopping; the result saves to HDF5.  With a
   model built on several packings (an ensemble) the loss is averaged over them.
-* :func:`sweep` runs any platen test (:mod:`jdem.labtests`) over a grid or a
-  Latin-hypercube sample of parameters as vmapped batches, optionally sharded
-  over all devices; :func:`save_sweep` / :func:`load_sweep` / :func:`plot_sweep`.
+* Batched parameter sweeps of the platen tests live in :mod:`jdem.sweep`
+  (which uses :func:`material` here).
 
 Named parameters (``PARAMETERS``): ``E`` bond Young's modulus [Pa], ``nu``,
 ``T0`` tensile strength [Pa], ``c0`` cohesion [Pa], ``phi`` friction angle
@@ -279,7 +278,7 @@ def calibration_loss(params: Params, model, target: Target, weights=LossWeights(
 
 
 def calibrate(model, params: Params, target, start: dict, *, bounds=None, steps=100,
-              learning_rate=0.05, weights=LossWeights(), tol=1e-5, patience=15,
+              learning_rate=0.1, weights=LossWeights(), tol=1e-5, patience=20,
               min_improvement=1e-3, progress=True, out=None):
     """Fit the named parameters of ``start`` to ``target`` by gradient descent.
 
@@ -291,7 +290,8 @@ def calibrate(model, params: Params, target, start: dict, *, bounds=None, steps=
     bounds         name -> (lo, hi); default: ``DEFAULT_BOUNDS`` or start / 5 .. start x 5.
                    The optimiser works on u with value = lo (hi/lo)^sigmoid(u)
                    (log space; linear when lo <= 0), so bounds always hold
-    steps          at most this many Adam steps (optax) of size ``learning_rate`` in u
+    steps          at most this many Adam steps (optax); the step size in u decays
+                   from ``learning_rate`` to 5 % of it (cosine) over ``steps``
     tol            stop when the loss falls below it
     patience       stop when the best loss has not improved by a fraction
                    ``min_improvement`` for this many steps
@@ -313,7 +313,8 @@ def calibrate(model, params: Params, target, start: dict, *, bounds=None, steps=
         loss, out = calibration_loss(material(params, vals), model, target, weights)
         return loss, (out["overflowed"], out["first_bad_step"])
 
-    opt = optax.adam(learning_rate)
+    # Adam with a cosine decay to 5 % of the rate: large early steps, then settling
+    opt = optax.adam(optax.cosine_decay_schedule(learning_rate, max(int(steps), 1), alpha=0.05))
     state = opt.init(u)
     grad_fn = jax.jit(jax.value_and_grad(loss_fn, has_aux=True))
     hist = {"loss": []}
@@ -403,3 +404,67 @@ def load_calibration(path) -> dict:
                 history={k[5:]: v for k, v in hist.items() if k.startswith("iter_")},
                 curves={k: v for k, v in hist.items() if not k.startswith("iter_")},
                 params=rd.params)
+
+
+def plot_calibration(res: CalibrationResult, path=None, *, true_values=None):
+    """Target, starting and fitted curves (left) and the loss history (right);
+    written as PNG when ``path`` is given.  Returns the matplotlib figure."""
+    import matplotlib
+
+    if path is not None:
+        matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    c = res.curves
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(10, 4))
+    ax.plot(c["target_strain"] * 100, c["target_stress"] / 1e6, "k-", lw=2.5, label="target")
+    for key, style, label in (("start_stress", "C1--", "start"), ("fit_stress", "C0-", "fitted")):
+        s = np.atleast_2d(c[key])
+        e = np.atleast_2d(c["strain"])
+        for m in range(s.shape[0]):
+            ax.plot(e[m] * 100, s[m] / 1e6, style, lw=1.2, label=label if m == 0 else None)
+    ax.set_xlabel("axial strain [%]")
+    ax.set_ylabel("axial stress [MPa]")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    text = "\n".join(f"{k}: {res.start[k]:.4g} -> {v:.4g}"
+                     + (f" (true {true_values[k]:.4g})" if true_values and k in true_values else "")
+                     for k, v in res.values.items())
+    ax.set_title("stress-strain", fontsize=10)
+    ax.text(0.98, 0.02, text, transform=ax.transAxes, ha="right", va="bottom", fontsize=8,
+            bbox=dict(fc="white", alpha=0.8))
+    bx.semilogy(np.arange(len(res.history["loss"])), res.history["loss"], "C0-")
+    bx.set_xlabel("optimiser step")
+    bx.set_ylabel("loss")
+    bx.grid(alpha=0.3, which="both")
+    bx.set_title(f"{res.steps} steps, {res.wall_time:.0f} s", fontsize=10)
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+    return fig
+
+
+# ----------------------------------------------------------------------------- demo problem
+#: true values of the demonstration problem (002 §2 material, kappa = 0.3 %)
+DEMO_TRUE = dict(E=30e9, strength=3e6, kappa=3e-3)
+
+
+def demo_problem(*, seed=2, size=(0.004, 0.008), radii=(0.2e-3, 0.35e-3), kappa_known=True):
+    """A small calibration problem with a known answer (used by ``jdem demo`` and
+    notebooks/calibration.ipynb): a ~100-disc bonded specimen (4 mm x 8 mm), the
+    target curve simulated with ``DEMO_TRUE`` and a start with E 40 % high and the
+    strength 30 % low (and kappa 50 % high unless ``kappa_known``).  Returns
+    ``(model, params, target curve dict, true values, start values)``."""
+    from jdem import difflab, labtests
+    from jdem.specimen import generate
+
+    spec = generate("rectangle", size, *radii, seed=seed, target_coordination=4.5)
+    model, params = difflab.ucs_model(spec, labtests.rock_params(2, kappa=DEMO_TRUE["kappa"]),
+                                      max_strain=2.2e-3)
+    curve, model = difflab.checked_curve(material(params, DEMO_TRUE), model)
+    start = dict(E=1.4 * DEMO_TRUE["E"], strength=0.7 * DEMO_TRUE["strength"])
+    if not kappa_known:
+        start["kappa"] = 1.5 * DEMO_TRUE["kappa"]
+    true = {k: DEMO_TRUE[k] for k in start}
+    return model, params, curve, true, start

@@ -74,7 +74,28 @@ def demo(out="results/demo", small=False):
                                                for k, v in h.items()},
                        attrs={"what": "single-bond tension and direct shear, 002 §1.3"})
     print(f"  histories -> {path}  ({time.time() - t0:.0f} s)")
+    calibration_demo(out, small=small)
     return path
+
+
+def calibration_demo(out, small=False):
+    """Gradient calibration of E and the bond strength against a target UCS curve
+    simulated with known values (:func:`jdem.calibrate.demo_problem`)."""
+    from jdem import calibrate
+
+    t0 = time.time()
+    print("jdem demo: calibrating E and T0 = c0 of a ~100-disc specimen against a target "
+          "UCS curve (jax.grad + optax)")
+    model, params, target, true, start = calibrate.demo_problem()
+    res = calibrate.calibrate(model, params, target, start, steps=15 if small else 60,
+                              progress=True, out=out / "calibration.h5")
+    calibrate.plot_calibration(res, out / "calibration.png", true_values=true)
+    for k, v in res.values.items():
+        print(f"  {k:8s}: start {start[k]:.4g}  fitted {v:.4g}  true {true[k]:.4g}  "
+              f"({100 * (v / true[k] - 1):+.1f} %)")
+    print(f"  loss {res.history['loss'][0]:.3g} -> {res.loss:.3g} in {res.steps} steps "
+          f"-> {out / 'calibration.png'}, {out / 'calibration.h5'}  ({time.time() - t0:.0f} s)")
+    return res
 
 
 # ----------------------------------------------------------------------------- ucs

@@ -65,13 +65,14 @@ class CurveData(NamedTuple):
     state     initial :class:`jdem.state.State` (platens touching the specimen)
     h0        (B,) or () initial platen distance [m]
     area      (B,) or () platen area [m^2] (2D: width x 1 m)
-    velocity  (B, W, d) or (W, d) wall velocities at full speed [m/s]
+    step      (B, W, d) or (W, d) wall displacement per time step at full speed [m]
+              (the velocity is ``step / params.dt``)
     """
 
     state: State
     h0: jnp.ndarray
     area: jnp.ndarray
-    velocity: jnp.ndarray
+    step: jnp.ndarray
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,11 +88,21 @@ class CurveSpec:
     ensemble: bool
 
 
-class CurveModel(NamedTuple):
-    """A differentiable UCS test: ``data`` (pytree) and ``spec`` (hashable)."""
+@jax.tree_util.register_pytree_node_class
+class CurveModel:
+    """A differentiable UCS test: ``data`` (pytree leaves) and ``spec`` (static,
+    hashable).  A pytree itself, so it may be passed to jitted functions."""
 
-    data: CurveData
-    spec: CurveSpec
+    def __init__(self, data: CurveData, spec: CurveSpec):
+        self.data = data
+        self.spec = spec
+
+    def tree_flatten(self):
+        return (self.data,), self.spec
+
+    @classmethod
+    def tree_unflatten(cls, spec, children):
+        return cls(children[0], spec)
 
     @property
     def n_members(self) -> int:
@@ -224,11 +235,10 @@ def ucs_model(specimens, params: Params, *, platen_step=5e-9, max_strain=3e-3,
     for su in setups:
         timestep.check_timestep(su.state, stiff._replace(dt=params.dt), su.config)
     dim = setups[0].frame.dim
-    # platen speed from the step per step and the final dt
-    vel = []
+    vel = []   # top platen displacement per step
     for su in setups:
         v = np.zeros(np.shape(su.state.walls.vel))
-        v[1, dim - 1] = -platen_step / dt
+        v[1, dim - 1] = -platen_step
         vel.append(v)
     full_records = max_strain * float(np.min(heights)) / platen_step / record_every
     n_records = int(np.ceil(full_records + 0.5 * ramp_records))
@@ -266,8 +276,9 @@ def _curve(params: Params, data: CurveData, spec: CurveSpec):
 
     def block(s, k):
         x = jnp.minimum(1.0, (k + 0.5) / ramp)
-        frac = (0.5 - 0.5 * jnp.cos(jnp.pi * x)).astype(data.velocity.dtype)   # smooth start
-        s = s._replace(walls=s.walls._replace(vel=data.velocity * frac))
+        frac = (0.5 - 0.5 * jnp.cos(jnp.pi * x)).astype(data.step.dtype)   # smooth start
+        dt = params.dt[..., None, None] if batch else params.dt
+        s = s._replace(walls=s.walls._replace(vel=data.step / dt * frac))
         s, rec = rollout(s, params, spec.config, 1, spec.record_every, _platen_observe,
                          batched=batch, checkpoint=False)
         return s, jax.tree_util.tree_map(lambda a: a[0], rec)

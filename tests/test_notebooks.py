@@ -88,3 +88,13 @@ def test_notebooks_are_committed_without_outputs():
 
 def test_kernel_runs_this_environment(tmp_path):
     assert _kernel_python(tmp_path) == sys.prefix
+
+
+def test_calibration_notebook_runs(tmp_path):
+    execute_notebook("calibration.ipynb", tmp_path)
+    assert (tmp_path / "calibration.png").stat().st_size > 0
+    from jdem import calibrate
+
+    back = calibrate.load_calibration(tmp_path / "calibration.h5")
+    assert set(back["values"]) == {"E", "strength"}
+    assert back["history"]["loss"][-1] <= back["history"]["loss"][0]

@@ -1,0 +1,211 @@
+"""Differentiable UCS tests (jdem.difflab) and calibration (jdem.calibrate).
+
+One ~106-disc specimen (4 mm x 8 mm) and one model serve every test, so the
+curve and its gradient compile once each.  float64 (tests/conftest.py).
+"""
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jdem import InputError, difflab
+from jdem import calibrate as cb
+from jdem import labtests as lt
+from jdem.specimen import generate
+
+SIZE = (0.004, 0.008)
+RADII = (0.2e-3, 0.35e-3)
+TRUE = dict(E=30e9, strength=3e6, kappa=3e-3)
+MAX_STRAIN = 2.2e-3
+
+
+@functools.lru_cache(maxsize=None)
+def specimen(seed):
+    return generate("rectangle", SIZE, *RADII, seed=seed, target_coordination=4.5)
+
+
+@functools.lru_cache(maxsize=None)
+def model_and_params():
+    return difflab.ucs_model(specimen(2), lt.rock_params(2, kappa=3e-3), max_strain=MAX_STRAIN)
+
+
+@functools.lru_cache(maxsize=None)
+def target_curve():
+    model, params = model_and_params()
+    curve, _ = difflab.checked_curve(cb.material(params, TRUE), model)
+    return curve
+
+
+# ----------------------------------------------------------------------------- the model
+def test_curve_has_peak_softening_and_breakage():
+    c = target_curve()
+    s, fd = c["stress"], c["fracture_degree"]
+    k = int(np.argmax(s))
+    assert 0 < k < len(s) - 5
+    assert s[-1] < 0.5 * s[k]                      # softening after the peak
+    assert fd[-1] > 0.05 and fd[k // 2] == 0.0       # bonds break, none early
+    assert np.all(np.diff(c["strain"]) > 0)
+
+
+def test_ensemble_members_equal_single_runs():
+    """Two packings padded to common capacities and run as one vmapped call give
+    each packing's own curve."""
+    params0 = lt.rock_params(2, kappa=3e-3)
+    ens, pe = difflab.ucs_model([specimen(2), specimen(3)], params0, max_strain=MAX_STRAIN)
+    single, ps = difflab.ucs_model(specimen(3), params0, max_strain=MAX_STRAIN)
+    assert ens.n_members == 2
+    assert float(pe.dt) <= float(model_and_params()[1].dt) * (1 + 1e-12)
+    ce, _ = difflab.checked_curve(pe, ens)
+    cs, _ = difflab.checked_curve(pe, single)
+    n = min(ce["stress"].shape[-1], cs["stress"].shape[-1])
+    k = int(np.argmax(cs["stress"][:n]))
+    np.testing.assert_allclose(ce["stress"][1, :k + 1], cs["stress"][:k + 1], rtol=1e-6,
+                               atol=1e-6 * float(cs["stress"][k]))
+    assert not np.allclose(ce["stress"][0, :n], ce["stress"][1, :n])
+
+
+# ----------------------------------------------------------------------------- gradients
+GRAD_FIELDS = ("bond_youngs", "bond_poisson", "bond_tensile", "bond_cohesion",
+               "bond_friction_angle", "bond_tensile_strain", "bond_shear_strain")
+
+
+def _window_mean(params, model, n_rec):
+    out = difflab.simulate_curve(params, model)
+    return jnp.mean(out["stress"][:n_rec]) / 1e6
+
+
+def test_gradients_match_finite_differences_up_to_the_peak():
+    """d(mean stress up to the peak)/d(parameter) by jax.grad vs central differences
+    (relative steps 1e-3 and 1e-4) for every bond parameter.  Where the two
+    differences agree within 2 % (the response is smooth at that scale) the
+    gradient must be within 5 % of them; the response must be smooth for E, nu,
+    T0, c0 and phi."""
+    model, params = model_and_params()
+    c = target_curve()
+    n_rec = int(np.argmax(c["stress"])) + 1
+    grad = jax.jit(jax.grad(_window_mean), static_argnums=2)(params, model, n_rec)
+    f = jax.jit(_window_mean, static_argnums=2)
+    report = {}
+    for name in GRAD_FIELDS:
+        x0 = float(getattr(params, name))
+        fds = []
+        for rel in (1e-3, 1e-4):
+            h = rel * x0
+            fp = f(params._replace(**{name: jnp.asarray(x0 + h)}), model, n_rec)
+            fm = f(params._replace(**{name: jnp.asarray(x0 - h)}), model, n_rec)
+            fds.append(float(fp - fm) / (2 * h) * x0)
+        ad = float(getattr(grad, name)) * x0
+        smooth = abs(fds[0] - fds[1]) <= 0.02 * max(abs(fds[0]), abs(fds[1]))
+        report[name] = (ad, fds, smooth)
+    print(report)
+    for name, (ad, fds, smooth) in report.items():
+        if smooth:
+            assert abs(ad - fds[1]) <= 0.05 * abs(fds[1]), (name, ad, fds)
+    for name in ("bond_youngs", "bond_poisson", "bond_tensile", "bond_cohesion",
+                 "bond_friction_angle"):
+        assert report[name][2], (name, report[name])
+
+
+def test_gradients_finite_through_breakage():
+    model, params = model_and_params()
+    target = cb.load_target(target_curve())
+    start = cb.material(params, dict(E=36e9, strength=2.5e6, kappa=4e-3))
+    (loss, out), g = jax.value_and_grad(cb.calibration_loss, has_aux=True)(start, model, target)
+    assert float(out["fracture_degree"][-1]) > 0.05
+    assert np.isfinite(float(loss)) and float(loss) > 0
+    for name in GRAD_FIELDS:
+        v = np.asarray(getattr(g, name))
+        assert np.all(np.isfinite(v)), name
+    assert float(g.bond_youngs) != 0.0 and float(g.bond_tensile) != 0.0
+
+
+# ----------------------------------------------------------------------------- targets, loss
+def test_load_target_sources_and_errors(tmp_path):
+    e = np.linspace(0, 3e-3, 301)
+    # linear (1e10 Pa) to 5 MPa, then a peak of 7 MPa at 1.5e-3, then softening
+    s = np.where(e <= 5e-4, 1e10 * e, np.where(e <= 1.5e-3, 5e6 + 2e9 * (e - 5e-4),
+                                               7e6 - 3e9 * (e - 1.5e-3)))
+    t = cb.load_target((e, s))
+    assert t.peak_strain == pytest.approx(1.5e-3) and t.peak_stress == pytest.approx(7e6)
+    assert t.modulus == pytest.approx(1e10, rel=1e-9)
+    f = tmp_path / "curve.csv"
+    f.write_text("strain,stress\n" + "".join(f"{a},{b}\n" for a, b in zip(e, s)))
+    np.testing.assert_allclose(cb.load_target(f).stress, s)
+    assert cb.load_target({"axial_strain": e, "axial_stress": s}).peak_stress == t.peak_stress
+    bad = tmp_path / "bad.csv"
+    bad.write_text("0,0\n1e-3,5e6\nx,y\n")
+    with pytest.raises(InputError, match="line 3"):
+        cb.load_target(bad)
+    with pytest.raises(InputError, match="does not exist"):
+        cb.load_target(tmp_path / "missing.csv")
+    with pytest.raises(InputError, match="must increase"):
+        cb.load_target((e[::-1], s))
+    s2 = s.copy()
+    s2[4] = np.nan
+    with pytest.raises(InputError, match=r"stress\[4\]"):
+        cb.load_target((e, s2))
+    with pytest.raises(InputError, match="differ in length"):
+        cb.load_target((e, s[:-1]))
+
+
+def test_curve_loss_interpolates_onto_target_strains():
+    e = np.linspace(0, 3e-3, 301)
+    s = 1e10 * e * np.exp(-e / 1e-3)
+    t = cb.load_target((e[::7], s[::7]))          # the target sampled elsewhere
+    same = float(cb.curve_loss(jnp.asarray(e), jnp.asarray(s), t))
+    off = float(cb.curve_loss(jnp.asarray(e), jnp.asarray(1.1 * s), t))
+    assert same < 1e-5
+    assert off > 100 * same and off > 0.01
+
+
+def test_material_and_bad_names():
+    p = lt.rock_params(2, kappa=3e-3)
+    q = cb.material(p, dict(E=45e9, strength=4e6, kappa=5e-3))
+    assert float(q.bond_youngs) == 45e9
+    assert float(q.bond_tensile) == float(q.bond_cohesion) == 4e6
+    assert float(q.bond_tensile_strain) == float(q.bond_shear_strain) == 5e-3
+    assert float(q.kn[0]) == pytest.approx(1.5 * float(p.kn[0]))
+    assert float(q.kn[1]) == float(p.kn[1])                      # platen unchanged
+    with pytest.raises(InputError, match="'Young'"):
+        cb.material(p, {"Young": 1.0})
+    model, params = model_and_params()
+    with pytest.raises(InputError, match="outside its bounds"):
+        cb.calibrate(model, params, target_curve(), dict(E=30e9), bounds={"E": (1e9, 2e9)},
+                     progress=False)
+
+
+# ----------------------------------------------------------------------------- recovery
+def test_calibration_recovers_fracture_strain(tmp_path):
+    """kappa = eps_lim = gamma_lim from +50 % on the target's packing: within 15 %
+    in at most 100 Adam steps; the result reopens from HDF5."""
+    model, params = model_and_params()
+    res = cb.calibrate(model, params, target_curve(), dict(kappa=1.5 * TRUE["kappa"]),
+                       steps=100, progress=False, out=tmp_path / "cal.h5")
+    print(res.values, res.steps, res.loss)
+    assert res.steps <= 100
+    assert abs(res.values["kappa"] / TRUE["kappa"] - 1) < 0.15
+    assert res.history["loss"][0] > 100 * res.loss
+    back = cb.load_calibration(tmp_path / "cal.h5")
+    assert back["values"] == pytest.approx(res.values)
+    np.testing.assert_allclose(back["curves"]["fit_stress"], res.curves["fit_stress"])
+    np.testing.assert_allclose(back["history"]["loss"], res.history["loss"])
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="not met: from 30-50 % off, E, strength and kappa "
+                   "together end in a strength/kappa local minimum, and ~100-disc packings "
+                   "differ by ~10 % in peak stress (see the closing note)")
+def test_recovery_three_parameters_on_a_different_packing():
+    """The issue's recovery check: target on packing 2, calibration on packing 3
+    from E +40 %, strength -35 %, kappa +50 %: E within 3 %, strength within 5 %,
+    kappa within 15 %, in at most 100 steps."""
+    params0 = lt.rock_params(2, kappa=3e-3)
+    model, params = difflab.ucs_model(specimen(3), params0, max_strain=MAX_STRAIN)
+    start = dict(E=1.4 * TRUE["E"], strength=0.65 * TRUE["strength"], kappa=1.5 * TRUE["kappa"])
+    res = cb.calibrate(model, params, target_curve(), start, steps=100, progress=False)
+    print(res.values, res.steps, res.loss)
+    assert abs(res.values["E"] / TRUE["E"] - 1) < 0.03
+    assert abs(res.values["strength"] / TRUE["strength"] - 1) < 0.05
+    assert abs(res.values["kappa"] / TRUE["kappa"] - 1) < 0.15
