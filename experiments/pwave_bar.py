@@ -23,7 +23,15 @@ after the incident pulse has passed and before the wave can come back from the
 left end; the coda is the same measure stopped before a reflection from the
 right end can arrive (what the random packing scatters by itself).
 
-Writes pwave_velocity.png, ratio_iteration.png and pwave_bar.h5 to
+Reflection against a reference (the measure the tests use): the bar is cut
+from a 1800 m packing (jdem.absorbing.bar_pair; Pattern B: the cut face is
+ragged) and the reflected amplitude at P3 is max |v_truncated - v_reference|
+over the record 2 L / c_P + T, over the incident peak; the packing's own
+scattering is the same in both and cancels.  Reported for Pattern A (beta = 1,
+0.5) and for Pattern B cut from the long packing (beta = 1, 0.5 and the
+ratio-iterated beta of the cut bar).
+
+Writes pwave_velocity.png, ratio_iteration.png, reflection_reference.png and pwave_bar.h5 to
 experiments/results/pwave_bar/ (or --out).
 """
 from __future__ import annotations
@@ -125,6 +133,56 @@ def main(argv=None):
                  reflected_energy_beta1=e_one, p3_reflected_beta1=r1["ratio"],
                  p3_reflected_ratio=r_ratio["ratio"], p3_reflected_grad=r_grad["ratio"],
                  p3_coda=coda(h_ratio, rnd), wave_speed=r1["speed"])
+
+    # --- reflection against an extended reference (bar cut from an 1800 m packing)
+    lx = 1.8 * L
+    pos, rad = ab.square_packing(int(lx / (2 * r_reg)), int(H / (2 * r_reg)), r_reg)
+    pair_a = ab.bar_pair(*ab.lattice(pos, rad, ab.square_density(RHO)), length=L, height=H,
+                         dt_factor=0.9)
+    ref_a = ab.run_bar(pair_a.reference)
+    new_a = {}
+    for beta in (1.0, 0.5):
+        h = ab.run_bar(pair_a.truncated, ab.with_betas(pair_a.truncated, beta_right=beta))
+        new_a[beta] = ab.reflection_against_reference(h, ref_a, t_max=pair_a.record)
+        print(f"Pattern A vs reference, beta = {beta}: reflected {new_a[beta]['ratio']:.2%} "
+              f"(at {new_a[beta]['time']:.2f} s)")
+    parts_l, bonds_l, _ = ab.random_packing(lx, H, r_min, 1.5 * r_min, seed=1, fix_rotation=True)
+    pair_b = ab.bar_pair(parts_l, bonds_l, length=L, height=H, dt_factor=0.9)
+    cut = pair_b.truncated
+    rb_cut = cut.conditions.boundaries[1]
+    print(f"Pattern B cut from a {lx:.0f} m packing: {int(np.sum(np.asarray(cut.state.particles.valid)))}"
+          f" discs, {len(rb_cut.index)} exposed right-boundary discs, sum of D = "
+          f"{float(np.sum(rb_cut.width)):.1f} m")
+    ref_b = ab.run_bar(pair_b.reference)
+    cal_cut = ab.calibrate_ratio(cut, beta0=1.0)
+    print(f"  ratio iteration on the cut bar: beta = {cal_cut.beta:.4f} in {len(cal_cut.history)} runs"
+          f" (converged {cal_cut.converged})")
+    new_b = {}
+    for name, beta in (("beta1", 1.0), ("beta05", 0.5), ("ratio", cal_cut.beta)):
+        h = ab.run_bar(cut, ab.with_betas(cut, beta_right=beta))
+        new_b[name] = ab.reflection_against_reference(h, ref_b, t_max=pair_b.record)
+        print(f"  Pattern B cut vs reference, beta = {beta:.4f}: reflected {new_b[name]['ratio']:.2%} "
+              f"(at {new_b[name]['time']:.2f} s), M_out/M_in {ab.peak(h, 4) / 0.5:.4f}")
+    fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    for ax, (ref_h, res, title) in zip(axes, (
+            (ref_a, new_a, "Pattern A at P3"), (ref_b, new_b, "Pattern B (cut) at P3"))):
+        ax.plot(ref_h["time"], ref_h["vel"][:, 2, 0], "k", lw=1, label="reference (1800 m)")
+        for key, r in res.items():
+            ax.plot(ref_h["time"], r["difference"], lw=1,
+                    label=f"truncated - reference, {key} ({r['ratio']:.1%})")
+        ax.axvline(pair_a.record if ax is axes[0] else pair_b.record, color="gray", ls=":")
+        ax.set_title(title, fontsize=10)
+        ax.set_ylabel("v_x [m/s]")
+        ax.legend(fontsize=7)
+    axes[-1].set_xlabel("time [s]")
+    fig.tight_layout()
+    fig.savefig(out / "reflection_reference.png", dpi=120)
+    hist.update(reference_time=ref_b["time"], random_cut_reference_vel=ref_b["vel"][:, :, 0],
+                random_cut_difference_ratio=new_b["ratio"]["difference"])
+    attrs.update(ref_regular_beta1=new_a[1.0]["ratio"], ref_regular_beta05=new_a[0.5]["ratio"],
+                 ref_random_beta1=new_b["beta1"]["ratio"], ref_random_beta05=new_b["beta05"]["ratio"],
+                 ref_random_ratio=new_b["ratio"]["ratio"], beta_ratio_cut=cal_cut.beta,
+                 cut_boundary_discs=len(rb_cut.index), cut_boundary_sum_d=float(np.sum(rb_cut.width)))
 
     # --- figures
     fig, axes = plt.subplots(3, 1, figsize=(8, 9), sharex=True)

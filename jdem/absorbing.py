@@ -38,6 +38,10 @@ ordinary traced leaves.  Host-side builders validate their input and raise
 
 The second half of the module drives the one-dimensional P-wave bar of
 001 §2.2 (:func:`bar_model`, :func:`run_bar`) on which the calibrations run.
+The reflection of a boundary is measured against an extended reference model
+with the identical packing (:func:`bar_pair`,
+:func:`reflection_against_reference`), so that what a random packing scatters
+by itself cancels.
 """
 from __future__ import annotations
 
@@ -726,7 +730,8 @@ INPUTS = ("velocity", "viscous")
 
 def bar_model(particles, bonds, *, length, height, c_p=1000.0, density=2500.0, amplitude=0.5,
               duration=0.5, input="velocity", beta_left=1.0, beta_right=1.0, k_right=0.0,
-              t_end=None, dt_factor=0.5, record_every=1, chunk_steps=2000) -> BarModel:
+              t_end=None, dt_factor=0.5, record_every=1, chunk_steps=2000, dt=None,
+              right: BoundarySet | None = None, monitors: tuple | None = None) -> BarModel:
     """The P-wave bar of 001 §2.2 on a given packing of [0, length] x [0, height].
 
     Every disc's y velocity is fixed (001 Fig 1).  The left boundary carries the
@@ -740,6 +745,10 @@ def bar_model(particles, bonds, *, length, height, c_p=1000.0, density=2500.0, a
     return to the middle and pass it, 2 length / c_p + duration.  ``dt`` is
     ``dt_factor`` x the critical step; ``n_steps`` is rounded up to whole chunks
     of ``chunk_steps`` so that every run of this size reuses one compiled chunk.
+    ``dt`` [s] overrides the step (to run two models on the same clock),
+    ``right`` (a :class:`BoundarySet`) the right boundary discs (default
+    :func:`boundary_particles` on "right"), ``monitors`` (5 tuples of disc rows)
+    the monitor groups P1..P5.
     """
     if input not in INPUTS:
         raise InputError(f"input must be one of {INPUTS}, got {input!r}")
@@ -755,10 +764,12 @@ def bar_model(particles, bonds, *, length, height, c_p=1000.0, density=2500.0, a
     params = wave_params(c_p, density)
     parts = particles._replace(fixed_vel=particles.fixed_vel.at[:, 1].set(True))
     state, config = make_state(parts, bonds=bonds)
-    params = params._replace(dt=jnp.asarray(stable_dt(state, params, config, dt_factor), dtype))
+    step = stable_dt(state, params, config, dt_factor) if dt is None else float(
+        require_positive("dt", dt))
+    params = params._replace(dt=jnp.asarray(step, dtype))
 
     left = boundary_particles(parts, "left")
-    right = boundary_particles(parts, "right")
+    right = boundary_particles(parts, "right") if right is None else right
     time, vel, disp = cosine_pulse(amplitude, duration)
     inward = np.array([1.0, 0.0])
     c_s = c_p / math.sqrt(2.0)
@@ -783,6 +794,8 @@ def bar_model(particles, bonds, *, length, height, c_p=1000.0, density=2500.0, a
     groups = list(slice_groups(parts, 0, x, r_mean))
     groups[0] = tuple(int(k) for k in left.index)
     groups[-1] = tuple(int(k) for k in right.index)
+    if monitors is not None:
+        groups = [tuple(int(k) for k in g) for g in monitors]
     if t_end is None:
         t_end = 2.0 * length / c_p + duration
     dt = float(params.dt)
@@ -852,6 +865,147 @@ def reflection(history: dict, model: BarModel, monitor: int = 2) -> dict:
     ref = float(np.max(np.abs(v[win, monitor]))) if np.any(win) else float("nan")
     return dict(incident=inc, reflected=ref, ratio=ref / inc, speed=float(speed),
                 window=(float(lo), float(hi)))
+
+
+# ============================================================================ reflection vs reference
+def exposed_particles(particles, side="right", *, among=None) -> BoundarySet:
+    """The discs of a ragged (cut) boundary facing ``side``: those whose centre
+    sees out along the outward normal, i.e. no other disc of ``among`` (default
+    all valid) lies further out with its centre within its own radius of that
+    ray.  Returns a :class:`BoundarySet` (D = 2 r, ``position`` the outermost
+    edge).  2D only; O(N^2) on the host."""
+    pos = np.asarray(particles.pos, np.float64)
+    rad = np.asarray(particles.radius, np.float64)
+    rows = np.nonzero(np.asarray(particles.valid))[0]
+    if among is not None:
+        rows = np.intersect1d(rows, np.asarray(among, np.int64))
+    if rows.size == 0:
+        raise InputError("among selects no valid particle")
+    n = _outward(side)
+    t = np.array([-n[1], n[0]])
+    d = pos[rows][None, :, :] - pos[rows][:, None, :]         # (k, m, 2): m relative to k
+    ahead = (d @ n > 0) & (np.abs(d @ t) < rad[rows][None, :])
+    pick = rows[~ahead.any(axis=1)]
+    pick = pick[np.argsort(pos[pick] @ t)]
+    return BoundarySet(index=pick, width=2.0 * rad[pick], normal=n, tangent=t,
+                       position=float(np.max(pos[pick] @ n + rad[pick])))
+
+
+def cut_packing(particles, bonds, x_max):
+    """The discs of a packing whose centre lies at x <= ``x_max`` [m] and the
+    bonds between them (rows renumbered, order kept).  Returns
+    ``(particles, bonds, rows)`` with ``rows`` (M,) the kept rows of the input,
+    so that ``rows[k]`` is the original row of new disc k."""
+    pos = np.asarray(particles.pos, np.float64)
+    keep = np.nonzero(np.asarray(particles.valid) & (pos[:, 0] <= float(x_max)))[0]
+    if keep.size == 0:
+        raise InputError(f"x_max = {x_max!r} keeps no particle")
+    new = np.full(pos.shape[0], -1, np.int64)
+    new[keep] = np.arange(keep.size)
+    bi, bj = np.asarray(bonds.i), np.asarray(bonds.j)
+    kb = np.nonzero(np.asarray(bonds.valid) & (new[bi] >= 0) & (new[bj] >= 0))[0]
+    parts = jax.tree_util.tree_map(lambda a: a[jnp.asarray(keep)], particles)
+    b = jax.tree_util.tree_map(lambda a: a[jnp.asarray(kb)], bonds)
+    b = b._replace(i=jnp.asarray(new[bi[kb]], bonds.i.dtype), j=jnp.asarray(new[bj[kb]], bonds.j.dtype))
+    return parts, b, keep
+
+
+class BarPair(NamedTuple):
+    """A truncated bar and its extended reference (:func:`bar_pair`).
+
+    truncated, reference  BarModels on one clock, with the same monitor discs
+    clean_until  (5,) [s] at each monitor P1..P5, the earliest time anything
+                 from the reference's far end could arrive there
+    record       [s] the part of the record that counts, 2 length / c_p + T
+    """
+
+    truncated: BarModel
+    reference: BarModel
+    clean_until: np.ndarray
+    record: float
+
+
+def bar_pair(particles, bonds, *, length, height, monitor=2, c_max=None, **kwargs) -> BarPair:
+    """A truncated bar and its extended reference, cut from one long packing.
+
+    ``particles``, ``bonds``: a packing of [0, L_ext] x [0, height] [m]; the
+    truncated model (:func:`bar_model`, same keywords) keeps the discs with
+    centre x <= ``length`` [m] (:func:`cut_packing`), its right boundary the
+    discs exposed on the cut (:func:`exposed_particles`; on a random packing
+    the cut is ragged); the reference is the whole packing with the same left
+    input, the same time step and record and the same monitor discs (P5: the
+    truncated model's right boundary discs, inside the reference).  In
+    [0, length] the two are the same disc for disc, so the packing's own
+    scattering is the same in both.  The reference's far end (viscous,
+    beta = 1) must be so far away that nothing from there reaches monitor
+    ``monitor`` within the record 2 length / c_p + T: with the fastest speed
+    ``c_max`` (default 1.2 c_p) it arrives at x_m after (2 L_ext - x_m) / c_max;
+    InputError otherwise.  Returns a :class:`BarPair`.
+    """
+    kw = dict(kwargs)
+    for name in ("dt", "right", "monitors", "t_end"):
+        if name in kw:
+            raise InputError(f"bar_pair sets {name} itself")
+    parts, bnd, rows = cut_packing(particles, bonds, length)
+    right = exposed_particles(parts, "right")
+    params = wave_params(kw.get("c_p", 1000.0), kw.get("density", 2500.0))
+    dts = []
+    for p_, b_ in ((parts, bnd), (particles, bonds)):
+        st, cf = make_state(p_._replace(fixed_vel=p_.fixed_vel.at[:, 1].set(True)), bonds=b_)
+        dts.append(stable_dt(st, params, cf, kw.get("dt_factor", 0.5)))
+    dt = min(dts)                                 # one clock for both models
+    trunc = bar_model(parts, bnd, length=length, height=height, right=right, dt=dt, **kw)
+    t_end = (trunc.n_steps - 0.5) * dt            # the same whole chunks for the reference
+    monitors = tuple(tuple(int(rows[k]) for k in g) for g in trunc.monitors.groups)
+    ref = bar_model(particles, bonds, length=length, height=height, dt=dt, t_end=t_end,
+                    monitors=monitors, **kw)
+    if ref.n_steps != trunc.n_steps:
+        raise RuntimeError("bar_pair: the two records differ in length")
+    pos = np.asarray(particles.pos, np.float64)
+    rad = np.asarray(particles.radius, np.float64)
+    l_ext = float(np.max((pos[:, 0] + rad)[np.asarray(particles.valid)]))
+    c = 1.2 * trunc.c_p if c_max is None else float(require_positive("c_max", c_max))
+    clean = (2.0 * l_ext - trunc.monitor_x) / c
+    record = 2.0 * trunc.length / trunc.c_p + trunc.duration
+    if clean[monitor] < record:
+        raise InputError(f"the packing is too short for a reference: its far end at {l_ext:.1f} m "
+                         f"can reach monitor {monitor} after {clean[monitor]:.3f} s, within the "
+                         f"record {record:.3f} s (need L_ext >= "
+                         f"{0.5 * (c * record + trunc.monitor_x[monitor]):.1f} m)")
+    return BarPair(truncated=trunc, reference=ref, clean_until=clean, record=record)
+
+
+def reflection_against_reference(truncated: dict, reference: dict, *, monitor=2, incident=None,
+                                 t_max=None, component=0) -> dict:
+    """Reflected amplitude at a monitor, measured against an extended reference.
+
+    ``truncated`` and ``reference`` are monitor histories (:func:`run_bar`) of
+    the model with the absorbing boundary and of the extended model with the
+    identical packing where they overlap (:func:`bar_pair`): ``time`` (R,) [s]
+    on the same clock and ``vel`` (R, M, 2) [m/s] at the same monitor discs.
+    Whatever the packing scatters by itself is in both and cancels; the
+    difference is what the truncation sends back.  Only times t <= ``t_max``
+    [s] count (default: the whole record; for a :class:`BarPair` pass
+    ``pair.record``).  ``incident`` [m/s] is the peak incident amplitude
+    (default: the largest ``component`` velocity of the reference at the
+    monitor).  Returns ``reflected`` = max |v_truncated - v_reference| [m/s],
+    ``incident``, ``ratio`` = reflected / incident, ``time`` [s] of the largest
+    difference and ``difference`` (R,) [m/s] over the whole record.
+    """
+    ta, tb = np.asarray(truncated["time"]), np.asarray(reference["time"])
+    if ta.shape != tb.shape or not np.allclose(ta, tb, rtol=1e-9, atol=0.0):
+        raise InputError("truncated and reference records must share their time axis")
+    va = np.asarray(truncated["vel"])[:, monitor, component]
+    vb = np.asarray(reference["vel"])[:, monitor, component]
+    diff = va - vb
+    win = np.ones(ta.shape, bool) if t_max is None else ta <= float(t_max)
+    if not np.any(win):
+        raise InputError(f"t_max = {t_max!r} leaves no record")
+    inc = float(np.max(vb[win])) if incident is None else float(
+        require_positive("incident", incident))
+    k = int(np.argmax(np.where(win, np.abs(diff), -np.inf)))
+    ref = float(np.abs(diff[k]))
+    return dict(incident=inc, reflected=ref, ratio=ref / inc, time=float(ta[k]), difference=diff)
 
 
 # ============================================================================ calibration
