@@ -11,8 +11,8 @@
    (arguments + outputs + temporaries) and the growth of the process's peak
    resident memory while it ran.
 2. A sweep of ``--batch`` parameter sets of the same test as one vmapped call
-   over ``Params`` (``jax.vmap(simulate_curve)``), ``--sweep-steps`` steps:
-   specimens x steps per second.
+   (an ensemble of copies of the specimen with one parameter set each),
+   ``--sweep-steps`` steps: specimens x steps per second.
 
 Writes ``calibration_benchmark.json`` and ``.md`` with the machine and date.
 """
@@ -25,6 +25,7 @@ import os
 import pathlib
 import platform
 import resource
+import sys
 import time
 
 import jax
@@ -58,6 +59,7 @@ def main(argv=None):
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--sweep-steps", type=int, default=2000)
     ap.add_argument("--out", default=str(HERE / "results" / "calibration_benchmark"))
+    ap.add_argument("--skip-gradient", action="store_true", help="only the sweep figure")
     a = ap.parse_args(argv)
     out = pathlib.Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -70,38 +72,41 @@ def main(argv=None):
     model, params = difflab.ucs_model(spec, labtests.rock_params(2), platen_step=platen_step,
                                       max_strain=strain, record_every=record_every)
     steps = model.spec.n_records * record_every
-    target = calibrate.load_target(difflab.checked_curve(params, model)[0])
     print(f"{n} discs, {steps} steps, {model.spec.n_records} records")
 
-    fwd = jax.jit(lambda p: difflab.simulate_curve(p, model)["stress"])
-    t_fwd = _best(fwd, params)
-    print(f"forward: {t_fwd:.2f} s ({n * steps / t_fwd / 1e6:.2f} M particle-steps/s)")
+    t_fwd = t_grad = xla_bytes = rss1 = float("nan")
+    if not a.skip_gradient:
+        target = calibrate.load_target(difflab.checked_curve(params, model)[0])
+        fwd = jax.jit(lambda p: difflab.simulate_curve(p, model)["stress"])
+        t_fwd = _best(fwd, params)
+        print(f"forward: {t_fwd:.2f} s ({n * steps / t_fwd / 1e6:.2f} M particle-steps/s)")
 
-    start = calibrate.material(params, dict(E=36e9, strength=2.5e6, kappa=4e-3))
-    vg = jax.jit(jax.value_and_grad(lambda p: calibrate.calibration_loss(p, model, target)[0]))
-    compiled = vg.lower(start).compile()
-    mem = compiled.memory_analysis()
-    xla_bytes = None
-    if mem is not None:
-        xla_bytes = int(mem.argument_size_in_bytes + mem.output_size_in_bytes
-                        + mem.temp_size_in_bytes)
-    rss0 = _rss_gib()
-    t_grad = _best(vg, start)
-    rss1 = _rss_gib()
-    print(f"forward+backward: {t_grad:.2f} s = {t_grad / t_fwd:.2f} x forward; XLA memory "
-          f"{(xla_bytes or 0) / 2**30:.3f} GiB; peak RSS {rss1:.2f} GiB (+{rss1 - rss0:.2f})")
+        start = calibrate.material(params, dict(E=36e9, strength=2.5e6, kappa=4e-3))
+        vg = jax.jit(jax.value_and_grad(lambda p: calibrate.calibration_loss(p, model, target)[0]))
+        compiled = vg.lower(start).compile()
+        mem = compiled.memory_analysis()
+        xla_bytes = None
+        if mem is not None:
+            xla_bytes = int(mem.argument_size_in_bytes + mem.output_size_in_bytes
+                            + mem.temp_size_in_bytes)
+        rss0 = _rss_gib()
+        t_grad = _best(vg, start)
+        rss1 = _rss_gib()
+        print(f"forward+backward: {t_grad:.2f} s = {t_grad / t_fwd:.2f} x forward; XLA memory "
+              f"{(xla_bytes or 0) / 2**30:.3f} GiB; peak RSS {rss1:.2f} GiB (+{rss1 - rss0:.2f})")
 
     # sweep: vmapped over parameter sets
     sweep_strain = a.sweep_steps * platen_step / 0.025
-    smodel, sparams = difflab.ucs_model(spec, labtests.rock_params(2), platen_step=platen_step,
-                                        max_strain=sweep_strain, record_every=record_every,
-                                        ramp_records=2)
+    smodel, sparams = difflab.ucs_model([spec] * a.batch, labtests.rock_params(2),
+                                        platen_step=platen_step, max_strain=sweep_strain,
+                                        record_every=record_every, ramp_records=2)
     s_steps = smodel.spec.n_records * record_every
     rng = np.random.default_rng(0)
     values = dict(E=rng.uniform(20e9, 40e9, a.batch), strength=rng.uniform(2e6, 4e6, a.batch))
     batch = jax.vmap(lambda e, s: calibrate.material(sparams, dict(E=e, strength=s)))(
         jnp.asarray(values["E"]), jnp.asarray(values["strength"]))
-    swp = jax.jit(jax.vmap(lambda p: difflab.simulate_curve(p, smodel)["stress"]))
+    # one parameter set per member of an ensemble of copies (batched neighbour refresh)
+    swp = jax.jit(lambda p: difflab.simulate_curve(p, smodel)["stress"])
     t0 = time.perf_counter()
     jax.block_until_ready(swp(batch))
     t_compile = time.perf_counter() - t0
@@ -113,17 +118,30 @@ def main(argv=None):
     res = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="minutes"),
                machine=f"{platform.machine()} {os.cpu_count()} cores, {platform.platform()}",
                devices=[str(d) for d in jax.devices()], jax=jax.__version__, dtype="float64",
-               command="python experiments/calibration_benchmark.py " + " ".join(argv or []),
+               command=" ".join(["python experiments/calibration_benchmark.py"]
+                                + list(sys.argv[1:] if argv is None else argv)),
                n_particles=n, steps=steps, forward_s=t_fwd, forward_backward_s=t_grad,
                backward_over_forward=t_grad / t_fwd, gradient_xla_bytes=xla_bytes,
                peak_rss_gib=rss1, sweep_batch=a.batch, sweep_steps=s_steps, sweep_s=t_sweep,
                sweep_specimen_steps_per_s=rate)
+    previous = out / "calibration_benchmark.json"
+    if a.skip_gradient and previous.exists():   # keep the gradient figures measured before
+        old = json.loads(previous.read_text())
+        for key in ("steps", "forward_s", "forward_backward_s", "backward_over_forward",
+                    "gradient_xla_bytes", "peak_rss_gib"):
+            res[key] = old.get(key)
+        res["gradient_date"] = old.get("gradient_date", old.get("date"))
+        t_fwd, t_grad, xla_bytes, rss1, steps = (res["forward_s"], res["forward_backward_s"],
+                                                 res["gradient_xla_bytes"], res["peak_rss_gib"],
+                                                 res["steps"])
+    else:
+        res["gradient_date"] = res["date"]
     (out / "calibration_benchmark.json").write_text(json.dumps(res, indent=1))
     md = ["# Gradient cost and sweep throughput", "",
           f"{res['date']}, {res['machine']}, JAX {res['jax']}, {res['devices']}, float64", "",
           f"Command: `{res['command']}`", "",
           "| figure | value |", "|---|---|",
-          f"| specimen | {n} discs, UCS, {steps} steps |",
+          f"| specimen | {n} discs, UCS, {steps} steps (gradient figures of {res['gradient_date']}) |",
           f"| forward | {t_fwd:.2f} s |",
           f"| forward + backward (value_and_grad, all parameters) | {t_grad:.2f} s ({t_grad / t_fwd:.2f} x forward) |",
           f"| gradient memory, XLA estimate | {(xla_bytes or 0) / 2**30:.3f} GiB |",

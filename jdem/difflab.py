@@ -268,7 +268,7 @@ def _platen_observe(state, params, config):
 @functools.partial(jax.jit, static_argnames=("spec",))
 def _curve(params: Params, data: CurveData, spec: CurveSpec):
     batch = spec.ensemble
-    if batch:
+    if batch and jnp.ndim(params.dt) == 0:   # one parameter set for every member
         nb = data.h0.shape[0]
         params = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (nb,) + jnp.shape(a)),
                                         params)
@@ -306,7 +306,12 @@ def simulate_curve(params: Params, model: CurveModel) -> dict:
                      with :func:`grow` and run again
     first_bad_step   () first non-finite step (-1 if none)
 
-    Pure: use it inside ``jax.grad`` / ``jax.vmap`` (over params).
+    Pure: use it inside ``jax.grad`` / ``jax.vmap``.  With an ensemble model,
+    ``params`` may carry the member axis (one parameter set per member, e.g. a
+    sweep over copies of one specimen: ``ucs_model([spec] * 64, ...)``); that
+    refreshes the neighbour lists of all members in one ``lax.cond``, which a
+    ``jax.vmap`` of the single-specimen curve cannot (under ``vmap`` the
+    rebuild would run at every step).
     """
     return _curve(params, model.data, model.spec)
 
