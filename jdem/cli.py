@@ -81,6 +81,9 @@ def demo(out="results/demo", small=False):
 def calibration_demo(out, small=False):
     """Gradient calibration of E and the bond strength against a target UCS curve
     simulated with known values (:func:`jdem.calibrate.demo_problem`)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)   # 5 nm platen steps on 8 mm need float64
     from jdem import calibrate
 
     t0 = time.time()

@@ -216,6 +216,10 @@ def ucs_model(specimens, params: Params, *, platen_step=5e-9, max_strain=3e-3,
     members = [specimens] if single else list(specimens)
     if not members:
         raise InputError("specimens is empty")
+    if jnp.zeros(()).dtype != jnp.float64:
+        raise InputError("ucs_model needs float64: call jax.config.update('jax_enable_x64', "
+                         "True) first (platen steps of nanometres are below float32 "
+                         "resolution of the positions)")
     if np.ndim(params.dt) != 0:
         raise InputError("ucs_model needs unbatched params (one member); batch with vmap")
     if not (np.isfinite(platen_step) and platen_step > 0):

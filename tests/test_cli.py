@@ -11,3 +11,10 @@ def test_demo_writes_plots_and_hdf5(tmp_path):
     hist = io.load_history(path)
     assert abs(np.max(hist["tension_stress"]) / 3e6 - 1) < 5e-3
     assert abs(np.max(hist["shear_stress"]) / (3e6 + 3e6 * np.tan(np.pi / 6)) - 1) < 5e-3
+    # ... and ends with the calibration demo (15 Adam steps in the small run)
+    assert (tmp_path / "calibration.png").stat().st_size > 10_000
+    from jdem import calibrate
+
+    back = calibrate.load_calibration(tmp_path / "calibration.h5")
+    assert set(back["values"]) == {"E", "strength"}
+    assert back["loss"] < 0.5 * back["history"]["loss"][0]
