@@ -261,6 +261,16 @@ def _outward(side):
     return n / np.linalg.norm(n)
 
 
+def _candidate_rows(particles, among):
+    """Indices of the valid particles, restricted to ``among`` if given (non-empty)."""
+    rows = np.nonzero(np.asarray(particles.valid))[0]
+    if among is not None:
+        rows = np.intersect1d(rows, np.asarray(among, np.int64))
+    if rows.size == 0:
+        raise InputError("among selects no valid particle")
+    return rows
+
+
 def boundary_particles(particles, side, *, tolerance=None, among=None) -> BoundarySet:
     """The discs on the straight boundary of the assembly facing ``side``.
 
@@ -274,11 +284,7 @@ def boundary_particles(particles, side, *, tolerance=None, among=None) -> Bounda
     if pos.shape[1] != 2:
         raise InputError(f"boundary_particles works on 2D discs, got dimension {pos.shape[1]}")
     rad = np.asarray(particles.radius, np.float64)
-    rows = np.nonzero(np.asarray(particles.valid))[0]
-    if among is not None:
-        rows = np.intersect1d(rows, np.asarray(among, np.int64))
-    if rows.size == 0:
-        raise InputError("among selects no valid particle")
+    rows = _candidate_rows(particles, among)
     n = _outward(side)
     tol = 0.5 * rad[rows].min() if tolerance is None else float(
         require_positive("tolerance", tolerance, allow_zero=True))
@@ -876,11 +882,7 @@ def exposed_particles(particles, side="right", *, among=None) -> BoundarySet:
     edge).  2D only; O(N^2) on the host."""
     pos = np.asarray(particles.pos, np.float64)
     rad = np.asarray(particles.radius, np.float64)
-    rows = np.nonzero(np.asarray(particles.valid))[0]
-    if among is not None:
-        rows = np.intersect1d(rows, np.asarray(among, np.int64))
-    if rows.size == 0:
-        raise InputError("among selects no valid particle")
+    rows = _candidate_rows(particles, among)
     n = _outward(side)
     t = np.array([-n[1], n[0]])
     d = pos[rows][None, :, :] - pos[rows][:, None, :]         # (k, m, 2): m relative to k

@@ -204,14 +204,21 @@ def _read_tree(group: h5py.Group, cls: type, where: str, path):
     return cls(*values)
 
 
-def _load(path, parts=("state", "params", "config", "history", "attrs")) -> RunData:
+def open_hdf5(path):
+    """Open ``path`` for reading: ``FileNotFoundError`` if it is missing,
+    :class:`CorruptFileError` (an ``InputError``) if it is not HDF5."""
     path = pathlib.Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no such file: {path}")
     try:
-        f = h5py.File(path, "r")
+        return h5py.File(path, "r")
     except OSError as e:
         raise CorruptFileError(f"cannot open {path} as HDF5: {e}") from None
+
+
+def _load(path, parts=("state", "params", "config", "history", "attrs")) -> RunData:
+    path = pathlib.Path(path)
+    f = open_hdf5(path)
     out = dict.fromkeys(RunData._fields)
     try:
         with f:

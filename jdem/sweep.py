@@ -478,16 +478,10 @@ def save_sweep(path, table: SweepTable) -> pathlib.Path:
 def load_sweep(path) -> SweepTable:
     """Read a table written by :func:`save_sweep` (columns as NumPy arrays with
     their stored dtype; attributes as Python values)."""
-    import h5py
+    from jdem.io import open_hdf5
 
     path = pathlib.Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"no such file: {path}")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as e:
-        raise InputError(f"cannot open {path} as HDF5: {e}") from None
-    with f:
+    with open_hdf5(path) as f:
         fmt = f.attrs.get("format")
         if fmt != FORMAT or "table" not in f:
             raise InputError(f"{path} is not a sweep table (format attribute {fmt!r})")
