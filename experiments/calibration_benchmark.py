@@ -124,24 +124,12 @@ def main(argv=None):
                backward_over_forward=t_grad / t_fwd, gradient_xla_bytes=xla_bytes,
                peak_rss_gib=rss1, sweep_batch=a.batch, sweep_steps=s_steps, sweep_s=t_sweep,
                sweep_specimen_steps_per_s=rate)
-    previous = out / "calibration_benchmark.json"
-    if a.skip_gradient and previous.exists():   # keep the gradient figures measured before
-        old = json.loads(previous.read_text())
-        for key in ("steps", "forward_s", "forward_backward_s", "backward_over_forward",
-                    "gradient_xla_bytes", "peak_rss_gib"):
-            res[key] = old.get(key)
-        res["gradient_date"] = old.get("gradient_date", old.get("date"))
-        t_fwd, t_grad, xla_bytes, rss1, steps = (res["forward_s"], res["forward_backward_s"],
-                                                 res["gradient_xla_bytes"], res["peak_rss_gib"],
-                                                 res["steps"])
-    else:
-        res["gradient_date"] = res["date"]
     (out / "calibration_benchmark.json").write_text(json.dumps(res, indent=1))
     md = ["# Gradient cost and sweep throughput", "",
           f"{res['date']}, {res['machine']}, JAX {res['jax']}, {res['devices']}, float64", "",
           f"Command: `{res['command']}`", "",
           "| figure | value |", "|---|---|",
-          f"| specimen | {n} discs, UCS, {steps} steps (gradient figures of {res['gradient_date']}) |",
+          f"| specimen | {n} discs, UCS, {steps} steps |",
           f"| forward | {t_fwd:.2f} s |",
           f"| forward + backward (value_and_grad, all parameters) | {t_grad:.2f} s ({t_grad / t_fwd:.2f} x forward) |",
           f"| gradient memory, XLA estimate | {(xla_bytes or 0) / 2**30:.3f} GiB |",
