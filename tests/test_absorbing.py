@@ -121,15 +121,36 @@ def test_random_reference_shares_the_packing(random_pair, random_reference):
 
 
 @pytest.mark.xfail(strict=True, reason=(
-    "measured against the extended reference (identical packing, so the packing's own scattering "
-    "cancels), the ratio-calibrated boundary (beta ~ 0.69) still reflects ~6.7 % at P3: the bar "
-    "cut from the long packing ends on a ragged face (6 exposed discs, sum of D 59 m for a 50 m "
-    "boundary) and matching the peak velocity of the boundary discs (001 Fig 5) does not make "
-    "that face non-reflecting (see experiments/results/pwave_bar/NOTES.md)"))
+    "too coarse for 2 %: with radii 4-6 m the cut face has 5 discs, and measured against the "
+    "extended reference even the best beta of a scan (0.8) reflects 3.7 % at P3 (ratio iteration "
+    "lands near it).  The check is met at radii 1-1.5 m, 20 face discs: "
+    "test_random_packing_fine_reflected_amplitude_after_calibration (slow), 1.24 %"))
 def test_random_packing_reflected_amplitude_after_calibration(random_pair, random_reference):
     trunc = random_pair.truncated
     h = ab.run_bar(trunc, ab.with_betas(trunc, beta_right=_calibrated_beta(trunc)))
     r = ab.reflection_against_reference(h, random_reference, t_max=random_pair.record)
+    assert r["ratio"] < 0.02, r["ratio"]
+
+
+@pytest.mark.slow
+def test_random_packing_fine_reflected_amplitude_after_calibration():
+    """The issue's random-packing check at a resolution where the cut face has
+    about 20 discs: radii 1-1.5 m (size ratio 1.5, 8,300 discs in the bar,
+    14,600 in the 1800 m reference; about 5 minutes, hence ``slow``).  The ratio
+    iteration converges (|M_out / M_in - 1| < 0.001 within 15 runs) and then the
+    reflected amplitude at P3, measured against the extended reference, is below
+    2 %.  Measured: beta 0.891 in 7 runs, 1.24 %.  With radii 4-6 m (the
+    default-suite bar above) the best beta of a scan still reflects 3.7 %; with
+    2-3 m, 1.9 %: the residual is the raggedness of a face of 5-10 discs."""
+    parts, bonds, _ = ab.random_packing(LX, H, 1.0, 1.5, seed=1, fix_rotation=True)
+    pair = ab.bar_pair(parts, bonds, length=L, height=H, dt_factor=0.9)
+    trunc = pair.truncated
+    cal = ab.calibrate_ratio(trunc, beta0=1.0)
+    assert cal.converged and len(cal.history) <= 15
+    assert abs(cal.history[-1]["ratio"] - 1) < 1e-3
+    h = ab.run_bar(trunc, ab.with_betas(trunc, beta_right=cal.beta))
+    r = ab.reflection_against_reference(h, ab.run_bar(pair.reference), t_max=pair.record)
+    assert abs(r["incident"] / 0.5 - 1) < 0.02, r["incident"]
     assert r["ratio"] < 0.02, r["ratio"]
 
 
