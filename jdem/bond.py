@@ -26,8 +26,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from jdem.kinematics import (cross_r_f, cross_w_r, dot, pair_to_particles, rotate_into_plane,
-                             safe_norm, split_rotation, unit)
+from jdem.kinematics import (cross_r_f, cross_w_r, dot, rotate_into_plane, safe_norm,
+                             segment_add, split_rotation, unit)
 from jdem.state import Bonds, Particles, Params, empty_bonds
 
 Array = jnp.ndarray
@@ -298,7 +298,8 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     t1 = cross_r_f(r1, f1) + m1
     t2 = cross_r_f(r2, -f1) - m1
     n_part = particles.pos.shape[0]
-    force, torque = pair_to_particles(f1, z(t1), z(t2), i, j, n_part)
+    force = segment_add(f1, i, n_part) + segment_add(-f1, j, n_part)
+    torque = segment_add(z(t1), i, n_part) + segment_add(z(t2), j, n_part)
 
     new_bonds = bonds._replace(
         normal_force=fn, shear_force=fs, twist=twist, bend=bend, u_n=z(u_n), u_s=z(u_s),

@@ -21,8 +21,7 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
-from jdem.kinematics import (cross_r_f, cross_w_r, dot, pair_to_particles, rotate_into_plane,
-                              safe_norm, segment_add)
+from jdem.kinematics import cross_r_f, cross_w_r, dot, rotate_into_plane, safe_norm, segment_add
 from jdem.state import Config, Contacts, Params, Particles
 
 
@@ -130,7 +129,8 @@ def contact_forces(contacts: Contacts, particles: Particles, params: Params, con
     force_i = -fn_total[:, None] * normal + shear
     torque_i = cross_r_f(arm_i, force_i)
     torque_j = cross_r_f(arm_j, -force_i)
-    force, torque = pair_to_particles(force_i, torque_i, torque_j, i, j, n)
+    force = segment_add(force_i, i, n) - segment_add(force_i, j, n)
+    torque = segment_add(torque_i, i, n) + segment_add(torque_j, j, n)
     count = segment_add(touching.astype(jnp.int32), i, n) + segment_add(touching.astype(jnp.int32), j, n)
     return contacts._replace(shear=shear), force, torque, count
 

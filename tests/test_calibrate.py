@@ -87,16 +87,11 @@ def test_gradients_match_finite_differences_before_breakage():
     differences then depend on their step; see jdem.difflab).  Before it, bonds
     yield and soften (so eps_lim and gamma_lim act).  The response is piecewise
     smooth (every yield is a kink) and the gradient must be within 5 % of the
-    difference at 3e-3 for every parameter but eps_lim, and the differences at 3e-3
-    and 1e-3 must agree within 5 % (smooth at that scale).  eps_lim's effect in this
-    window is tiny (d ln sigma / d ln eps_lim ~ 1e-3 to 1e-4, set by the one or two
-    bonds softening just before the first break), so a central difference that
-    straddles one of their kinks is several per cent off, and which step does so
-    depends on the packing (measured on two packings: AD 6.010e-3 vs differences
-    6.010e-3 / 5.65e-3 at 3e-3 / 1e-3; AD 5.025e-4 vs 5.408e-4 / 5.081e-4 /
-    9.04e-4 at 3e-3 / 1e-3 / 3e-4).  Finite differences are no 5 % reference for
-    eps_lim, so it gets a weaker check: positive, and within 5 % of the range the
-    differences at 3e-3, 1e-3 and 3e-4 span."""
+    difference at 3e-3 for every parameter.  The differences at 3e-3 and 1e-3 must
+    agree within 5 % (smooth at that scale) for all but eps_lim, whose effect in
+    this window is tiny (d ln sigma / d ln eps_lim ~ 1e-3, 400 x below E's): there
+    the smaller step is 6 % off, round-off and single kinks (measured: AD 6.010e-3,
+    differences 6.010e-3 at 3e-3 and 5.65e-3 at 1e-3)."""
     model, params = model_and_params()
     c = target_curve()
     n_rec = int(np.argmax(c["fracture_degree"] > 0))
@@ -107,7 +102,7 @@ def test_gradients_match_finite_differences_before_breakage():
     for name in GRAD_FIELDS:
         x0 = float(getattr(params, name))
         fds = []
-        for rel in (3e-3, 1e-3) + ((3e-4,) if name == "bond_tensile_strain" else ()):
+        for rel in (3e-3, 1e-3):
             h = rel * x0
             fp = f(params._replace(**{name: jnp.asarray(x0 + h)}), model, n_rec)
             fm = f(params._replace(**{name: jnp.asarray(x0 - h)}), model, n_rec)
@@ -115,11 +110,8 @@ def test_gradients_match_finite_differences_before_breakage():
         report[name] = (float(getattr(grad, name)) * x0, fds)
     print(report)
     for name, (ad, fds) in report.items():
-        if name == "bond_tensile_strain":
-            lo, hi = min(fds), max(fds)
-            assert lo > 0 and 0.95 * lo <= ad <= 1.05 * hi, (name, ad, fds)
-            continue
-        assert abs(fds[0] - fds[1]) <= 0.05 * max(abs(fds[0]), abs(fds[1])), (name, fds)
+        if name != "bond_tensile_strain":
+            assert abs(fds[0] - fds[1]) <= 0.05 * max(abs(fds[0]), abs(fds[1])), (name, fds)
         assert abs(ad - fds[0]) <= 0.05 * abs(fds[0]), (name, ad, fds)
 
 
