@@ -420,31 +420,34 @@ def incident_wave(time, velocity, displacement, direction, dtype=None) -> tuple[
     return _history(time, velocity, d, dtype), _history(time, displacement, d, dtype)
 
 
+def _indexed_history(index, time, values, direction, *, name, verb, dtype):
+    """Checked particle indices (int32) and the history ``values`` (K,) along
+    ``direction`` at ``time`` (K,), shared by driven discs and point loads."""
+    d = require_finite("direction", direction).reshape(-1)
+    require_finite(name, values)
+    dtype = dtype or jnp.zeros(()).dtype
+    idx = np.asarray(index, np.int64).reshape(-1)
+    if idx.size == 0:
+        raise InputError(f"index selects no particle to {verb}")
+    return jnp.asarray(idx, jnp.int32), _history(time, values, d, dtype)
+
+
 def make_driven(index, time, velocity, direction, *, mask=None, dtype=None) -> Driven:
     """Prescribed velocity ``velocity`` (K,) [m/s] along ``direction`` at ``time``
     (K,) [s] on the discs ``index``; ``mask`` (2,) bool the driven components
     (default: both)."""
-    d = require_finite("direction", direction).reshape(-1)
-    require_finite("velocity", velocity)
-    dtype = dtype or jnp.zeros(()).dtype
-    idx = np.asarray(index, np.int64).reshape(-1)
-    if idx.size == 0:
-        raise InputError("index selects no particle to drive")
-    m = np.ones(d.shape, bool) if mask is None else np.asarray(mask, bool)
-    return Driven(index=jnp.asarray(idx, jnp.int32), vel=_history(time, velocity, d, dtype),
-                  mask=jnp.asarray(m))
+    idx, vel = _indexed_history(index, time, velocity, direction, name="velocity", verb="drive",
+                                dtype=dtype)
+    m = np.ones(vel.value.shape[-1:], bool) if mask is None else np.asarray(mask, bool)
+    return Driven(index=idx, vel=vel, mask=jnp.asarray(m))
 
 
 def make_point_load(index, time, force, direction, dtype=None) -> PointLoad:
     """Force ``force`` (K,) [N] along ``direction`` at ``time`` (K,) [s] on each
     disc of ``index`` (e.g. ``P0 * lamb_pulse(T0)``, 001 eq 19)."""
-    d = require_finite("direction", direction).reshape(-1)
-    require_finite("force", force)
-    dtype = dtype or jnp.zeros(()).dtype
-    idx = np.asarray(index, np.int64).reshape(-1)
-    if idx.size == 0:
-        raise InputError("index selects no particle to load")
-    return PointLoad(index=jnp.asarray(idx, jnp.int32), force=_history(time, force, d, dtype))
+    idx, hist = _indexed_history(index, time, force, direction, name="force", verb="load",
+                                 dtype=dtype)
+    return PointLoad(index=idx, force=hist)
 
 
 def fix_driven(state, driven: Driven):
