@@ -498,10 +498,11 @@ def profile_case(state, params, config, repeats, log=print, detail=True, loop_st
         desc="the 12 per-pair gathers of contact_forces (standalone call)")
     fi = jnp.ones((i.shape[0],) + p.pos.shape[1:], p.pos.dtype)
     ti = jnp.ones((i.shape[0],) + p.angvel.shape[1:], p.pos.dtype)
-    rec("contact.scatter_adds", lambda f, t, v: (segment_add(f, i, n) - segment_add(f, j, n),
-                                                 segment_add(t, i, n) + segment_add(t, j, n),
-                                                 segment_add(v, i, n) + segment_add(v, j, n)),
-        fi, ti, c.valid.astype(jnp.int32), desc="the 6 segment_add scatters of contact_forces (standalone call)")
+    touching = contact.pair_geometry(c, p).touching  # contact_forces sums touching rows only
+    add = lambda rows, index: segment_add(rows, index, n, where=touching)
+    rec("contact.scatter_adds", lambda f, t, v: (add(f, i) - add(f, j), add(t, i) + add(t, j),
+                                                 add(v, i) + add(v, j)),
+        fi, ti, touching.astype(jnp.int32), desc="the 6 segment_add scatters of contact_forces (standalone call)")
 
     # --- inside build (private helpers; skipped if they change), each in a fori_loop
     def rec_part(name, fn, k, desc, iters=lb):

@@ -298,8 +298,9 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     t1 = cross_r_f(r1, f1) + m1
     t2 = cross_r_f(r2, -f1) - m1
     n_part = particles.pos.shape[0]
-    force = segment_add(f1, i, n_part) + segment_add(-f1, j, n_part)
-    torque = segment_add(z(t1), i, n_part) + segment_add(z(t2), j, n_part)
+    add = lambda rows, index: segment_add(rows, index, n_part, where=valid)  # padding rows out
+    force = add(f1, i) + add(-f1, j)
+    torque = add(z(t1), i) + add(z(t2), j)
 
     new_bonds = bonds._replace(
         normal_force=fn, shear_force=fs, twist=twist, bend=bend, u_n=z(u_n), u_s=z(u_s),

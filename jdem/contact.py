@@ -129,9 +129,11 @@ def contact_forces(contacts: Contacts, particles: Particles, params: Params, con
     force_i = -fn_total[:, None] * normal + shear
     torque_i = cross_r_f(arm_i, force_i)
     torque_j = cross_r_f(arm_j, -force_i)
-    force = segment_add(force_i, i, n) - segment_add(force_i, j, n)
-    torque = segment_add(torque_i, i, n) + segment_add(torque_j, j, n)
-    count = segment_add(touching.astype(jnp.int32), i, n) + segment_add(touching.astype(jnp.int32), j, n)
+    # rows not touching carry exactly zero force and are left out of the sums
+    add = lambda rows, index: segment_add(rows, index, n, where=touching)
+    force = add(force_i, i) - add(force_i, j)
+    torque = add(torque_i, i) + add(torque_j, j)
+    count = add(touching.astype(jnp.int32), i) + add(touching.astype(jnp.int32), j)
     return contacts._replace(shear=shear), force, torque, count
 
 

@@ -79,6 +79,14 @@ def split_rotation(w, normal):
     return tw, w - tw[..., None] * normal
 
 
-def segment_add(values, index, n):
-    """Sum rows of ``values`` into ``n`` bins given by ``index`` (scatter-add)."""
-    return jnp.zeros((n,) + values.shape[1:], values.dtype).at[index].add(values)
+def segment_add(values, index, n, where=None):
+    """Sum rows of ``values`` (R, ...) into ``n`` bins given by ``index`` (R,) (scatter-add).
+
+    Rows with ``where`` False are left out (sent past the last bin and dropped).
+    Their values must be zero, so the sums are the same either way; leaving them
+    out matters on GPUs, where a scatter is a set of atomic adds and the padding
+    rows of a list (all pointing at particle 0) would serialise on one address.
+    """
+    if where is not None:
+        index = jnp.where(where, index, n)
+    return jnp.zeros((n,) + values.shape[1:], values.dtype).at[index].add(values, mode="drop")
