@@ -25,6 +25,12 @@ the class in :mod:`jdem.state` named by its ``_class`` attribute.
 
 Files are written to a temporary name beside the target and then renamed, so an
 interrupted save never destroys an older snapshot of the same name.
+
+A run restarted from a file continues bit for bit on the CPU.  On a GPU the
+force sums are atomic scatter-adds that sum in no fixed order, so two runs (and
+a restart) agree only to round-off, which contacts amplify; set
+``XLA_FLAGS=--xla_gpu_deterministic_ops=true`` before JAX starts for bit-for-bit
+restarts there (at a large cost in speed, experiments/results/NOTES.md).
 """
 from __future__ import annotations
 

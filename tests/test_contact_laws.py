@@ -138,3 +138,51 @@ def test_particle_on_incline_slides_iff_slope_exceeds_friction_angle(dim):
         x, expected, creep = _slide_on_incline(dim, slope, phi)
         assert abs(x / expected - 1) < 0.01  # spring-slider solution
         assert creep > 1e-4
+
+
+def test_segment_add_leaves_out_masked_rows():
+    """``segment_add(..., where=)`` drops the masked rows (sent past the last bin),
+    so they may hold anything; the kept rows sum as without a mask."""
+    from jdem.kinematics import segment_add
+
+    values = jnp.asarray([[1.0, 2.0], [10.0, 20.0], [100.0, 200.0], [5.0, 7.0]])
+    index = jnp.asarray([0, 2, 0, 1])
+    keep = jnp.asarray([True, False, True, True])
+    got = np.asarray(segment_add(values, index, 3, where=keep))
+    np.testing.assert_array_equal(got, [[101.0, 202.0], [5.0, 7.0], [0.0, 0.0]])
+    zeroed = jnp.where(keep[:, None], values, 0.0)
+    np.testing.assert_array_equal(got, np.asarray(segment_add(zeroed, index, 3)))
+
+
+def test_contact_sums_are_those_of_every_listed_row():
+    """contact_forces sums only touching rows; the totals equal a plain scatter of
+    every listed row (padding and separated pairs contribute exact zeros)."""
+    from jdem import neighbors
+    from jdem.kinematics import cross_r_f
+
+    rng = np.random.default_rng(3)
+    pos = rng.uniform(0, 0.02, (60, 3))
+    p = jdem.make_particles(pos, rng.uniform(1e-3, 2e-3, 60), density=2500.0,
+                            vel=rng.normal(0, 0.1, (60, 3)), angvel=rng.normal(0, 5.0, (60, 3)))
+    state, cfg = jdem.make_state(p, skin=1e-3)
+    c, _ = neighbors.allocate(state.particles, cfg, min_capacity=4 * int(state.contacts.n_pairs))
+    params = jdem.make_params(dim=3, kn=1e5, friction=0.5, dt=1e-6)
+    assert int(c.n_pairs) < c.i.shape[0]  # there are padding rows
+    new, force, torque, count = contact.contact_forces(c, state.particles, params, cfg)
+    g = contact.pair_geometry(c, state.particles)
+    assert 0 < int(g.touching.sum()) < int(c.n_pairs)  # touching and separated pairs
+    # every row's force from the returned shear and the same normal law, summed unmasked
+    _, fn, _, _ = contact.pair_law(c, state.particles, params, cfg)
+    i, j = c.i, c.j
+    assert float(params.contact_damping) == 0.0  # no normal dashpot term to add
+    f_i = -jnp.where(g.touching, fn, 0.0)[:, None] * g.normal + new.shear
+    n = pos.shape[0]
+    full = jnp.zeros((n, 3)).at[i].add(f_i).at[j].add(-f_i)
+    np.testing.assert_allclose(np.asarray(force), np.asarray(full), rtol=1e-12, atol=1e-15)
+    arm_i = (state.particles.radius[i] - 0.5 * g.overlap)[:, None] * g.normal
+    arm_j = -(state.particles.radius[j] - 0.5 * g.overlap)[:, None] * g.normal
+    t_full = jnp.zeros((n, 3)).at[i].add(cross_r_f(arm_i, f_i)).at[j].add(cross_r_f(arm_j, -f_i))
+    np.testing.assert_allclose(np.asarray(torque), np.asarray(t_full), rtol=1e-12, atol=1e-15)
+    touching = np.asarray(g.touching)
+    want = np.bincount(np.asarray(i)[touching], minlength=n) + np.bincount(np.asarray(j)[touching], minlength=n)
+    np.testing.assert_array_equal(np.asarray(count), want)
