@@ -133,7 +133,8 @@ def contact_forces(contacts: Contacts, particles: Particles, params: Params, con
     add = lambda rows, index: segment_add(rows, index, n, where=touching)
     force = add(force_i, i) - add(force_i, j)
     torque = add(torque_i, i) + add(torque_j, j)
-    count = add(touching.astype(jnp.int32), i) + add(touching.astype(jnp.int32), j)
+    ones = touching.astype(jnp.int32)
+    count = add(ones, i) + add(ones, j)
     return contacts._replace(shear=shear), force, torque, count
 
 

@@ -5,8 +5,8 @@ JAX's persistent compilation cache is pointed at a fresh folder for the session
 environment): several tests compile the same programs (the demo problem's curve
 and gradient in test_calibrate, test_cli and the calibration notebook), and the
 cache compiles each once.  The pytest-xdist workers (``-n 2`` in pyproject's
-addopts) inherit the folder from the controlling process, which removes it.  Set ``JAX_COMPILATION_CACHE_DIR`` yourself to keep a
-cache between runs.
+addopts) inherit the folder from the controlling process, which removes it.
+Set ``JAX_COMPILATION_CACHE_DIR`` yourself to keep a cache between runs.
 """
 import atexit
 import os
