@@ -889,6 +889,16 @@ def failure_pattern(state) -> dict:
                 mode=np.asarray(b.break_mode)[idx], step=np.asarray(b.break_step)[idx])
 
 
+def first_breaks(pattern: dict, fraction: float = 0.1, minimum: int = 5) -> np.ndarray:
+    """Where a failure starts: indices into the arrays of :func:`failure_pattern`
+    of its earliest broken bonds, the first ``fraction`` of them by breaking step
+    but at least ``minimum`` (all of them if fewer broke).  Bonds that broke in
+    the same step keep their row order."""
+    n = len(pattern["step"])
+    count = max(int(minimum), int(np.floor(n * float(fraction) + 1e-9)))
+    return np.argsort(pattern["step"], kind="stable")[:count]
+
+
 def damage_map(state) -> dict:
     """Every valid bond's contact point and damage (002 eq 10), for a damage map
     (002 Fig. 13): ``point`` (B, d), ``chi``, ``alpha``, ``beta`` (B,),

@@ -186,6 +186,17 @@ def brazil():
     return disc, hist, state
 
 
+def test_first_breaks_orders_by_step_and_counts_a_tenth():
+    """The earliest tenth (at least ``minimum``), same-step ties in row order."""
+    steps = np.array([70, 30, 30, 90, 10, 50, 20, 80, 60, 40, 100, 30])
+    first = lt.first_breaks(dict(step=steps), minimum=3)
+    assert first.tolist() == [4, 6, 1]                  # 12 breaks: a tenth is 1 -> 3
+    assert lt.first_breaks(dict(step=steps), minimum=5).tolist() == [4, 6, 1, 2, 11]
+    many = np.arange(97)[::-1]                          # bond 96 broke first
+    assert lt.first_breaks(dict(step=many)).tolist() == list(range(96, 87, -1))   # 9 of 97
+    assert lt.first_breaks(dict(step=steps[:2])).tolist() == [1, 0]   # fewer than minimum
+
+
 def test_brazilian_splits_along_the_loaded_diameter(brazil):
     """Diametral compression: the load peaks and drops; at the end most broken
     bonds (>= 70 %) lie in the band |x - x_c| < R/3 around the loaded diameter
@@ -205,7 +216,7 @@ def test_brazilian_splits_along_the_loaded_diameter(brazil):
     assert len(fp["index"]) >= 20
     band = np.abs(fp["point"][:, 0] - xc) < big_r / 3
     assert band.mean() >= 0.7
-    first = np.argsort(fp["step"], kind="stable")[: max(5, len(fp["step"]) // 10)]
+    first = lt.first_breaks(fp)
     assert band[first].mean() >= 0.8
     assert np.mean(fp["mode"][first] == 1) >= 0.5
 
@@ -213,7 +224,8 @@ def test_brazilian_splits_along_the_loaded_diameter(brazil):
 @pytest.mark.xfail(strict=True, reason=(
     "not reproduced: the first bonds break along the loaded diameter but spread over "
     "r ~ 0.3-0.9 R (flat platens on a few discs), not at the centre; on larger discs "
-    "(D/d 55-273) they break at the top platen first (experiments/brazilian_size.py)"))
+    "(D/d 55-273) they break at the top platen first (experiments/brazilian_size.py); "
+    "soft or flattened loading faces raise the share within 0.4 R to 41-52 %, not 80 %"))
 def test_brazilian_failure_starts_at_the_centre(brazil):
     """Expected behaviour not reproduced (strict xfail).  With flat rigid platens
     the load enters through one or two discs; the tensile stress along the loaded
@@ -227,12 +239,22 @@ def test_brazilian_failure_starts_at_the_centre(brazil):
     tenth of the breaks at 0.87, 0.95, 0.91 and 0.92 for D = 30, 60, 100, 150 mm
     (2,400 to 60,741 discs, D/d 55 to 273): the disc crushes under the top platen
     first and the split then runs down the loaded diameter, while sigma_t falls
-    from 2.55 MPa (D = 12 mm) to 0.59 MPa (150 mm)."""
+    from 2.55 MPa (D = 12 mm) to 0.59 MPa (150 mm).
+
+    Spreading the load does not do it either (same 12 mm disc, 384 discs,
+    experiments/results/brazilian_loading/): the share of the first tenth within
+    0.4 R is 20 % with rigid platens, 52 % with a soft cushion (platen stiffness
+    0.003 of the rock's), 41 % with 20 deg flats on a 0.01 cushion and 43 % with
+    the 0.01 cushion and kappa = 0.3 %.  Elasticity gives no strong pull to the
+    centre: under line loads sigma_x is uniform along the loaded diameter, and
+    under a load spread over an arc of 20 deg (Hondros) it is still 94 % of its
+    centre value at 0.4 R and 88 % at 0.5 R: it favours the inner half of the
+    diameter only mildly."""
     disc, hist, state = brazil
     big_r = disc.info["radius"]
     c = np.asarray(disc.info.get("centre", (big_r, big_r)))
     fp = lt.failure_pattern(state)
-    first = np.argsort(fp["step"], kind="stable")[: max(5, len(fp["step"]) // 10)]
+    first = lt.first_breaks(fp)
     r = np.linalg.norm(fp["point"][first] - c, axis=1)
     assert np.mean(r < 0.4 * big_r) >= 0.8
 
