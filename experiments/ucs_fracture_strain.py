@@ -2,7 +2,7 @@
 """Uniaxial compression vs fracture strain kappa (002 §2, Fig. 10-15).
 
     python experiments/ucs_fracture_strain.py --small            # ~500 discs, minutes
-    python experiments/ucs_fracture_strain.py                    # the seed's specimen: ~2 h on 2 CPU cores, 82 s on an H100
+    python experiments/ucs_fracture_strain.py                    # the seed's specimen: 1.5 h on 2 CPU cores, 82 s on an H100
     python experiments/ucs_fracture_strain.py --small --platen-step 1e-9 --out results/ucs_kappa
 
 The seed's test: a 5 cm x 10 cm 2D specimen of ~13,000 discs, r uniform in
