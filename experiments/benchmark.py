@@ -369,8 +369,9 @@ def run_case(dim, n, args, log=print):
         final_finite=finite, overflowed=overflow,
         final_kinetic_energy_J=float(measure.kinetic_energy(state)),
     )
-    if (jax.default_backend(), dim) in TARGETS:
-        result["target"] = TARGETS[(jax.default_backend(), dim)]
+    target = TARGETS.get((jax.default_backend(), dim))
+    if target:
+        result["target"] = target
     if not finite:
         log("  WARNING: final state is not finite")
     if overflow:

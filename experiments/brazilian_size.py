@@ -63,7 +63,7 @@ SMALL = (0.012, 0.02)
 def first_break_stats(disc, state, hist):
     """Distances of the first tenth of the broken bonds from the centre, and shares."""
     big_r = disc.info["radius"]
-    centre = np.asarray(disc.info.get("centre", (big_r, big_r)))
+    centre = np.asarray(disc.info["centre"])          # generate("disc") records both
     fp = lt.failure_pattern(state)
     n = len(fp["step"])
     first = lt.first_breaks(fp)
