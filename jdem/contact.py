@@ -21,7 +21,8 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
-from jdem.kinematics import cross_r_f, cross_w_r, dot, rotate_into_plane, safe_norm, segment_add
+from jdem.kinematics import (same_kind, components, cross_r_f, cross_w_r, dot, project_tangent,
+                             rotate_into_plane, safe_norm, scale, segment_add)
 from jdem.state import Config, Contacts, Params, Particles
 
 
@@ -54,12 +55,21 @@ def normal_law(overlap, r_eff, mat_a, mat_b, params: Params, model: str):
 
 
 def tangential_update(shear_old, normal, v_t, kt, fn, mu, dt, touching):
-    """Incremental tangential spring with Coulomb limit.  Shapes (..., d)."""
-    fs = rotate_into_plane(shear_old, normal) - (kt * dt)[..., None] * v_t
-    mag = safe_norm(fs)
+    """Incremental tangential spring with Coulomb limit (000 eq 4-3).
+
+    Vectors as arrays (..., d) or component tuples (:mod:`jdem.kinematics`);
+    returns the new tangential force in the kind of ``shear_old``.
+    """
+    fs = rotate_into_plane(shear_old, normal)
+    fs = same_kind([f - kt * dt * v for f, v in zip(components(fs), components(v_t))], shear_old)
+    # |F_t|, floored at the smallest normal number so that its gradient stays
+    # finite at F_t = 0 (written as one sqrt: XLA:CPU then computes it once
+    # instead of inside each consumer, see jdem.kinematics)
+    sq = dot(fs, fs)
+    mag = jnp.sqrt(jnp.maximum(sq, jnp.finfo(sq.dtype).tiny))
     limit = mu * fn
-    scale = jnp.where(mag > limit, limit / jnp.where(mag > 0, mag, 1.0), 1.0)
-    return jnp.where(touching[..., None], fs * scale[..., None], 0.0)
+    ratio = jnp.where(mag > limit, limit / jnp.where(mag > 0, mag, 1.0), 1.0)
+    return same_kind([jnp.where(touching, f * ratio, 0.0) for f in components(fs)], shear_old)
 
 
 def dashpot(kn, m_eff, approach_rate, params: Params):
@@ -80,17 +90,25 @@ class PairGeometry(NamedTuple):
     r_eff: jnp.ndarray
 
 
-def pair_geometry(contacts: Contacts, particles: Particles) -> PairGeometry:
+def _pair_geometry_components(contacts: Contacts, particles: Particles) -> PairGeometry:
+    """:func:`pair_geometry` with ``branch`` and ``normal`` as component tuples."""
     p = particles
     i, j = contacts.i, contacts.j
-    branch = p.pos[j] - p.pos[i]
+    branch = tuple(x[j] - x[i] for x in components(p.pos))
     dist = safe_norm(branch)
-    normal = branch / jnp.where(dist > 0, dist, 1.0)[:, None]
+    inv = jnp.where(dist > 0, dist, 1.0)
+    normal = tuple(b / inv for b in branch)
     ri, rj = p.radius[i], p.radius[j]
     overlap = ri + rj - dist
     touching = contacts.valid & (overlap > 0) & (dist > 0)
     r_eff = ri * rj / jnp.where(ri + rj > 0, ri + rj, 1.0)
     return PairGeometry(branch, dist, normal, jnp.where(touching, overlap, 0.0), touching, r_eff)
+
+
+def pair_geometry(contacts: Contacts, particles: Particles) -> PairGeometry:
+    """Geometry of every listed pair (see :class:`PairGeometry`); vectors as (C, d) arrays."""
+    g = _pair_geometry_components(contacts, particles)
+    return g._replace(branch=jnp.stack(g.branch, axis=-1), normal=jnp.stack(g.normal, axis=-1))
 
 
 def pair_law(contacts: Contacts, particles: Particles, params: Params, config: Config):
@@ -107,35 +125,44 @@ def contact_forces(contacts: Contacts, particles: Particles, params: Params, con
     Returns ``(contacts, force (N, d), torque (N,) | (N, 3), n_touching (N,))``:
     the list with updated tangential history, the summed contact force and torque
     on each particle, and each particle's number of touching contacts.
+
+    Vectors are handled as component tuples (see :mod:`jdem.kinematics`).
     """
     p = particles
     n = p.pos.shape[0]
     i, j = contacts.i, contacts.j
-    g, fn, kn, kt = pair_law(contacts, p, params, config)
+    g = _pair_geometry_components(contacts, p)
     normal, overlap, touching = g.normal, g.overlap, g.touching  # normal: unit, from i to j
-    ri, rj = p.radius[i], p.radius[j]
+    fn, kn, kt = normal_law(overlap, g.r_eff, p.material[i], p.material[j], params,
+                            config.contact_model)
     # contact point in the middle of the overlap (000 fig 4-4)
-    arm_i = (ri - 0.5 * overlap)[:, None] * normal
-    arm_j = -(rj - 0.5 * overlap)[:, None] * normal
-    v_rel = (p.vel[i] + cross_w_r(p.angvel[i], arm_i)) - (p.vel[j] + cross_w_r(p.angvel[j], arm_j))
+    arm_i = scale(p.radius[i] - 0.5 * overlap, normal)
+    arm_j = scale(-(p.radius[j] - 0.5 * overlap), normal)
+    # relative velocity at the contact point (000 eq 4-11..4-15)
+    if p.angvel.ndim == 1:  # 2D: the spin is a scalar per particle
+        w_i, w_j = p.angvel[i], p.angvel[j]
+    else:
+        w_i = tuple(w[i] for w in components(p.angvel))
+        w_j = tuple(w[j] for w in components(p.angvel))
+    v_rel = tuple((v[i] + si) - (v[j] + sj) for v, si, sj in
+                  zip(components(p.vel), cross_w_r(w_i, arm_i), cross_w_r(w_j, arm_j)))
     approach = dot(v_rel, normal)  # > 0 when closing
-    v_t = v_rel - approach[:, None] * normal
+    v_t = project_tangent(v_rel, normal)
 
     m_eff = p.mass[i] * p.mass[j] / (p.mass[i] + p.mass[j])
     fn_total = jnp.where(touching, jnp.maximum(fn + dashpot(kn, m_eff, approach, params), 0.0), 0.0)
     mu = jnp.minimum(params.friction[p.material[i]], params.friction[p.material[j]])
-    shear = tangential_update(contacts.shear, normal, v_t, kt, fn, mu, params.dt, touching)
+    shear = tangential_update(components(contacts.shear), normal, v_t, kt, fn, mu, params.dt,
+                              touching)
 
-    force_i = -fn_total[:, None] * normal + shear
-    torque_i = cross_r_f(arm_i, force_i)
-    torque_j = cross_r_f(arm_j, -force_i)
+    force_i = tuple(-fn_total * nc + s for s, nc in zip(shear, normal))
     # rows not touching carry exactly zero force and are left out of the sums
     add = lambda rows, index: segment_add(rows, index, n, where=touching)
     force = add(force_i, i) - add(force_i, j)
-    torque = add(torque_i, i) + add(torque_j, j)
+    torque = add(cross_r_f(arm_i, force_i), i) + add(cross_r_f(arm_j, tuple(-f for f in force_i)), j)
     ones = touching.astype(jnp.int32)
     count = add(ones, i) + add(ones, j)
-    return contacts._replace(shear=shear), force, torque, count
+    return contacts._replace(shear=jnp.stack(shear, axis=-1)), force, torque, count
 
 
 def pair_stiffness(contacts: Contacts, particles: Particles, params: Params, config: Config):

@@ -4,46 +4,88 @@ In 2D an angular velocity or torque is a scalar about the out-of-plane axis
 (shape ``(...,)``); in 3D it is a vector (shape ``(..., 3)``).  These helpers
 hide that difference so force laws are written once.
 
-Reductions over the short last axis (d = 2 or 3) are written out component by
-component: XLA on CPU vectorises ``a[..., 0] * b[..., 0] + ...`` over the long
-axis, while ``jnp.sum(a * b, axis=-1)`` over a minor axis of length 3 runs
-several times slower.
+A vector field is either an array ``(..., d)`` or a *component tuple*: ``d``
+arrays of shape ``(...)``, one per axis (see :func:`components`).  Every helper
+takes either and returns the same kind it was given.  The per-pair force laws
+work on component tuples: XLA on CPU then runs each component as a contiguous
+(R,) loop and keeps each intermediate array once, whereas on ``(R, d)`` rows
+with d = 2 or 3 it vectorises poorly and recomputes shared per-pair terms in
+every fused consumer (about 3x slower for the 3D contact kernel).
+
+Reductions over the short axis (d = 2 or 3) are written out component by
+component: ``a[..., 0] * b[..., 0] + ...`` vectorises over the long axis, while
+``jnp.sum(a * b, axis=-1)`` over a minor axis of length 3 runs several times
+slower on XLA:CPU.
 """
 from __future__ import annotations
 
 import jax.numpy as jnp
 
 
+def components(v):
+    """The ``d`` components of a vector field: ``v`` itself if it is a component
+    tuple, else the tuple ``(v[..., 0], ..., v[..., d-1])``."""
+    if isinstance(v, tuple):
+        return v
+    return tuple(v[..., k] for k in range(v.shape[-1]))
+
+
+def same_kind(parts, v):
+    """Return ``parts`` in the kind of ``v``: a tuple, or stacked on a last axis."""
+    return tuple(parts) if isinstance(v, tuple) else jnp.stack(parts, axis=-1)
+
+
+def dim_of(v):
+    """Number of components d of a vector field."""
+    return len(v) if isinstance(v, tuple) else v.shape[-1]
+
+
+def scale(s, v):
+    """Each row of the vector field ``v`` times the scalar field ``s`` (...).
+
+    ``v`` may also be a scalar field of the shape of ``s`` (a 2D spin or torque).
+    """
+    if isinstance(v, tuple):
+        return tuple(s * c for c in v)
+    if v.ndim == jnp.ndim(s):
+        return s * v
+    return s[..., None] * v
+
+
 def _cross3(a, b):
-    ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
-    bx, by, bz = b[..., 0], b[..., 1], b[..., 2]
-    return jnp.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
+    ax, ay, az = components(a)
+    bx, by, bz = components(b)
+    return same_kind([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], b)
 
 
 def cross_w_r(w, r):
     """Velocity ``w x r`` of a point at offset ``r`` (..., d) on a body spinning at ``w``."""
-    if r.shape[-1] == 2:
-        return jnp.stack([-w * r[..., 1], w * r[..., 0]], axis=-1)
+    if dim_of(r) == 2:
+        rx, ry = components(r)
+        return same_kind([-w * ry, w * rx], r)
     return _cross3(w, r)
 
 
 def cross_r_f(r, f):
     """Torque ``r x f`` of force ``f`` (..., d) at offset ``r``; scalar in 2D."""
-    if r.shape[-1] == 2:
-        return r[..., 0] * f[..., 1] - r[..., 1] * f[..., 0]
+    if dim_of(r) == 2:
+        rx, ry = components(r)
+        fx, fy = components(f)
+        return rx * fy - ry * fx
     return _cross3(r, f)
 
 
 def dot(a, b):
-    """Row-wise dot product over the last axis (written out, see the module note)."""
-    out = a[..., 0] * b[..., 0]
-    for k in range(1, a.shape[-1]):
-        out = out + a[..., k] * b[..., k]
+    """Row-wise dot product over the components (written out, see the module note)."""
+    pa, pb = components(a), components(b)
+    out = pa[0] * pb[0]
+    for k in range(1, len(pa)):
+        out = out + pa[k] * pb[k]
     return out
 
 
 def safe_norm(v, eps=0.0):
-    """Euclidean norm over the last axis whose gradient is finite at zero."""
+    """Euclidean norm over the components whose gradient is finite at zero."""
     sq = dot(v, v)
     pos = sq > eps * eps
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
@@ -57,7 +99,10 @@ def unit(v):
 
 def project_tangent(vec, normal):
     """Remove the component of ``vec`` along the unit ``normal``."""
-    return vec - dot(vec, normal)[..., None] * normal
+    along = dot(vec, normal)
+    if isinstance(vec, tuple):
+        return tuple(v - along * n for v, n in zip(vec, components(normal)))
+    return vec - along[..., None] * normal
 
 
 def rotate_into_plane(vec, normal):
@@ -66,8 +111,7 @@ def rotate_into_plane(vec, normal):
     old = safe_norm(vec)
     proj = project_tangent(vec, normal)
     new = safe_norm(proj)
-    scale = jnp.where(new > 0, old / jnp.where(new > 0, new, 1.0), 0.0)
-    return proj * scale[..., None]
+    return scale(jnp.where(new > 0, old / jnp.where(new > 0, new, 1.0), 0.0), proj)
 
 
 def split_rotation(w, normal):
@@ -82,11 +126,15 @@ def split_rotation(w, normal):
 def segment_add(values, index, n, where=None):
     """Sum rows of ``values`` (R, ...) into ``n`` bins given by ``index`` (R,) (scatter-add).
 
-    Rows with ``where`` False are left out (sent past the last bin and dropped).
-    Their values must be zero, so the sums are the same either way; leaving them
-    out matters on GPUs, where a scatter is a set of atomic adds and the padding
-    rows of a list (all pointing at particle 0) would serialise on one address.
+    ``values`` may also be a component tuple of (R,) arrays; the result is then an
+    (n, d) array.  Rows with ``where`` False are left out (sent past the last bin
+    and dropped).  Their values must be zero, so the sums are the same either way;
+    leaving them out matters on GPUs, where a scatter is a set of atomic adds and
+    the padding rows of a list (all pointing at particle 0) would serialise on one
+    address.
     """
     if where is not None:
         index = jnp.where(where, index, n)
+    if isinstance(values, tuple):
+        return jnp.stack([segment_add(c, index, n) for c in values], axis=-1)
     return jnp.zeros((n,) + values.shape[1:], values.dtype).at[index].add(values, mode="drop")

@@ -20,7 +20,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from jdem.contact import dashpot, normal_law, tangential_update
-from jdem.kinematics import cross_r_f, cross_w_r, dot
+from jdem.kinematics import components, cross_r_f, cross_w_r, dot, scale
 from jdem.state import Config, Params, Particles, Walls
 
 
@@ -53,24 +53,31 @@ def wall_forces(walls: Walls, particles: Particles, params: Params, config: Conf
     if walls.point.shape[0] == 0:
         zero_t = jnp.zeros_like(p.ext_torque)
         return walls, jnp.zeros_like(p.pos), zero_t, jnp.zeros(p.pos.shape[:1], jnp.int32)
-    normal = walls.normal[:, None, :]  # (W, 1, d)
+    # vectors as component tuples of (W, N) arrays (see jdem.kinematics)
+    normal = tuple(c[:, None] for c in components(walls.normal))  # (W, 1) each
     overlap, touching, fn, kn, kt = wall_law(walls, p, params, config)
-
-    arm = -(p.radius[None] - 0.5 * overlap)[..., None] * normal  # centre -> contact point
-    v_rel = p.vel[None] + cross_w_r(p.angvel[None], arm) - walls.vel[:, None, :]
+    arm = scale(-(p.radius[None] - 0.5 * overlap), normal)  # centre -> contact point
+    spin = p.angvel[None] if p.angvel.ndim == 1 else tuple(c[None] for c in components(p.angvel))
+    v_rel = tuple(v[None] + s - vw[:, None]
+                  for v, s, vw in zip(components(p.vel), cross_w_r(spin, arm), components(walls.vel)))
     approach = -dot(v_rel, normal)  # > 0 when the particle closes on the wall
-    v_t = v_rel + approach[..., None] * normal
+    v_t = tuple(v + approach * n for v, n in zip(v_rel, normal))
     fn_total = jnp.where(touching, jnp.maximum(fn + dashpot(kn, p.mass[None], approach, params), 0.0), 0.0)
     mu = jnp.minimum(params.friction[p.material][None], params.friction[walls.material][:, None])
-    shear = tangential_update(walls.shear, jnp.broadcast_to(normal, walls.shear.shape), v_t, kt,
-                              fn, mu, params.dt, touching)
-    force_pw = fn_total[..., None] * normal + shear  # on the particle, (W, N, d)
+    shear = tangential_update(components(walls.shear), normal, v_t, kt, fn, mu, params.dt, touching)
+    force_pw = tuple(fn_total * n + s for n, s in zip(normal, shear))  # on the particle
     torque_pw = cross_r_f(arm, force_pw)
-    walls = walls._replace(shear=shear, force=-jnp.sum(force_pw, axis=1),
+    walls = walls._replace(shear=jnp.stack(shear, axis=-1),
+                           force=-jnp.stack([jnp.sum(f, axis=1) for f in force_pw], axis=-1),
                            n_contacts=jnp.sum(touching, axis=1).astype(jnp.int32))
     kn_sum = jnp.sum(jnp.where(touching, kn, 0.0), axis=1)
     walls = _servo(walls, kn_sum, params)
-    return walls, jnp.sum(force_pw, axis=0), jnp.sum(torque_pw, axis=0), jnp.sum(touching, axis=0)
+    force = jnp.stack([jnp.sum(f, axis=0) for f in force_pw], axis=-1)
+    if isinstance(torque_pw, tuple):
+        torque = jnp.stack([jnp.sum(t, axis=0) for t in torque_pw], axis=-1)
+    else:
+        torque = jnp.sum(torque_pw, axis=0)
+    return walls, force, torque, jnp.sum(touching, axis=0)
 
 
 def normal_stress(walls: Walls):

