@@ -26,8 +26,9 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from jdem.kinematics import (cross_r_f, cross_w_r, dot, rotate_into_plane, safe_norm,
-                             segment_add, split_rotation, unit)
+from jdem.kinematics import (components, cross_r_f, cross_w_r, dot, floored_norm,
+                             project_tangent, rotate_into_plane, safe_norm, scale, segment_add,
+                             unit)
 from jdem.state import Bonds, Particles, Params, empty_bonds
 
 Array = jnp.ndarray
@@ -189,36 +190,43 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     t0, c0 = params.bond_tensile, params.bond_cohesion
     tanphi = jnp.tan(params.bond_friction_angle)
     eps_lim, gam_lim = params.bond_tensile_strain, params.bond_shear_strain
-    vb = lambda a: valid.reshape(valid.shape + (1,) * (a.ndim - 1))   # broadcast mask
-    z = lambda a: jnp.where(vb(a), a, jnp.zeros_like(a))
+    z = lambda a: jnp.where(valid, a, jnp.zeros_like(a))
+
+    # Vectors are component tuples of (B,) arrays (see jdem.kinematics); in 2D the
+    # rotations, moments and torques are scalars (B,).
+    zv = lambda v: tuple(z(c) for c in v) if isinstance(v, tuple) else z(v)
 
     # Geometry: n from 1 to 2; r1, r2 from the centroids to the contact point on the
     # bar, which divides the centre line in the ratio R1 : R2 (002 Fig. 3).
-    x1, x2 = particles.pos[i], particles.pos[j]
-    dx = x2 - x1
+    dx = tuple(x[j] - x[i] for x in components(particles.pos))
     n, _ = unit(dx)
-    r1 = (particles.radius[i] / length_d)[:, None] * dx
-    r2 = -(particles.radius[j] / length_d)[:, None] * dx
+    r1 = scale(particles.radius[i] / length_d, dx)
+    r2 = scale(-(particles.radius[j] / length_d), dx)
 
     # 002 eq 12: displacement increment of 1 relative to 2 at the contact point.
-    w1, w2 = particles.angvel[i], particles.angvel[j]
-    v_rel = (particles.vel[i] + cross_w_r(w1, r1)) - (particles.vel[j] + cross_w_r(w2, r2))
-    du = v_rel * dt
+    if dim == 2:
+        w1, w2 = particles.angvel[i], particles.angvel[j]
+    else:
+        w1 = tuple(w[i] for w in components(particles.angvel))
+        w2 = tuple(w[j] for w in components(particles.angvel))
+    v_rel = tuple((v[i] + s1) - (v[j] + s2) for v, s1, s2 in
+                  zip(components(particles.vel), cross_w_r(w1, r1), cross_w_r(w2, r2)))
+    du = tuple(c * dt for c in v_rel)
     du_n = dot(du, n)
     d_open = -du_n                                   # Δu_n, opening positive
-    d_us = du - du_n[:, None] * n                    # Δu_s, tangential
+    d_us = project_tangent(du, n)                    # Δu_s, tangential
 
     # Turn the stored tangential history into the current plane ⊥ n, then add up
     # the totals u_n, u_s.
-    fs_old = rotate_into_plane(bonds.shear_force, n)
-    u_s = rotate_into_plane(bonds.u_s, n) + d_us
+    fs_old = rotate_into_plane(components(bonds.shear_force), n)
+    u_s = tuple(a + b for a, b in zip(rotate_into_plane(components(bonds.u_s), n), d_us))
     u_n = bonds.u_n + d_open
     us_mag = safe_norm(u_s)
 
     # ---- intact bond -------------------------------------------------------
     # 002 eq 3: incremental trial forces (F_n compression positive; F_s on 1).
     fn_tr = bonds.normal_force - kn * d_open
-    fs_tr = fs_old - ks[:, None] * d_us
+    fs_tr = tuple(f - ks * d for f, d in zip(fs_old, d_us))
     # 002 eq 10: current strengths from the stored damage.
     t_old = t0 * (1.0 - bonds.alpha)
     c_old = c0 * (1.0 - bonds.beta)
@@ -230,25 +238,23 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     alpha_b = jnp.where(tens, jnp.clip(jnp.maximum(bonds.alpha, alpha_c), 0.0, 1.0), bonds.alpha)
     # 002 eq 8-9: Mohr-Coulomb with the corrected F_n, linear softening of c.
     strength = jnp.maximum(fn_b * tanphi + c_old * area, 0.0)
-    fs_mag = safe_norm(fs_tr)
+    fs_mag = floored_norm(fs_tr)
     shear = fs_mag >= strength
-    scale = jnp.where(fs_mag > 0, strength / _den(fs_mag), 0.0)
-    fs_b = jnp.where(shear[:, None], fs_tr * scale[:, None], fs_tr)
+    ratio = strength / fs_mag
+    fs_b = tuple(jnp.where(shear, f * ratio, f) for f in fs_tr)
     gam_p = us_mag / length_d - (c_old + fn_b * tanphi / area_d) / g_mod
     beta_c = jnp.where(gam_lim > 0, gam_p / _den(gam_lim), 1.0)    # gamma_lim = 0: brittle
     beta_b = jnp.where(shear, jnp.clip(jnp.maximum(bonds.beta, beta_c), 0.0, 1.0), bonds.beta)
 
     # ---- broken bond: compression-only frictional contact -------------------
     fn_f = kn * jnp.maximum(0.0, -u_n)
-    fs_f_tr = fs_old - ks[:, None] * d_us
     f_lim = fn_f * tanphi
-    fs_f_mag = safe_norm(fs_f_tr)
-    slip = fs_f_mag > f_lim
-    fs_f = jnp.where(slip[:, None], fs_f_tr * (f_lim / _den(fs_f_mag))[:, None], fs_f_tr)
+    slip = fs_mag > f_lim                 # the same trial force as the intact bond's
+    fs_f = tuple(jnp.where(slip, f * (f_lim / fs_mag), f) for f in fs_tr)
 
     was_broken = bonds.broken
     fn = z(jnp.where(was_broken, fn_f, fn_b))
-    fs = z(jnp.where(was_broken[:, None], fs_f, fs_b))
+    fs = tuple(z(jnp.where(was_broken, f, b)) for f, b in zip(fs_f, fs_b))
     alpha = z(jnp.where(was_broken, bonds.alpha, alpha_b))
     beta = z(jnp.where(was_broken, bonds.beta, beta_b))
 
@@ -261,15 +267,18 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
 
     # ---- moments -------------------------------------------------------------
     # 002 eq 4: relative rotation increment split into twist (along n) and bending.
-    dth_n, dth_s = split_rotation((w1 - w2) * dt, n)
-    bend_old = rotate_into_plane(bonds.bend, n) if dim == 3 else bonds.bend
-    twist_tr = bonds.twist - ks * geo.J * dth_n / area_d
     if dim == 3:
-        bend_tr = bend_old - (kn * geo.I / area_d)[:, None] * dth_s
+        dth = tuple((a - b) * dt for a, b in zip(w1, w2))
+        dth_n = dot(dth, n)
+        dth_s = project_tangent(dth, n)
+        bend_old = rotate_into_plane(components(bonds.bend), n)
+        bend_tr = tuple(b - (kn * geo.I / area_d) * d for b, d in zip(bend_old, dth_s))
         bend_mag = safe_norm(bend_tr)
     else:
-        bend_tr = bend_old - kn * geo.I * dth_s / area_d
+        dth_n, dth_s = 0.0, (w1 - w2) * dt
+        bend_tr = bonds.bend - kn * geo.I * dth_s / area_d
         bend_mag = jnp.abs(bend_tr)
+    twist_tr = bonds.twist - ks * geo.J * dth_n / area_d
     # 002 ineq 11 (with this step's corrected forces and trial moments): the bond
     # stops transmitting moments for good.
     sig_n = fn_b / area_d
@@ -279,7 +288,8 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     moment_lost = valid & (bonds.moment_lost | (~was_broken & ineq11))
     carry_m = valid & ~was_broken & ~moment_lost
     twist = jnp.where(carry_m, twist_tr, 0.0)
-    bend = jnp.where(carry_m.reshape(carry_m.shape + (1,) * (bend_tr.ndim - 1)), bend_tr, 0.0)
+    bend = tuple(jnp.where(carry_m, b, 0.0) for b in bend_tr) if dim == 3 \
+        else jnp.where(carry_m, bend_tr, 0.0)
 
     # ---- bond dashpots (Params.bond_damping) ----------------------------------
     # Viscous forces on the relative motion of intact bonds, 2 zeta sqrt(m* K)
@@ -290,20 +300,27 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     m_eff = jnp.where(live, m1_ * m2_ / _den(m1_ + m2_), 0.0)
     visc = lambda k: 2.0 * params.bond_damping * jnp.sqrt(jnp.where(live, m_eff * k, 1.0)) / dt
     fn_d = jnp.where(live, visc(kn) * du_n, 0.0)            # compression positive
-    fs_d = jnp.where(live[:, None], -visc(ks)[:, None] * d_us, 0.0)
+    visc_s = visc(ks)
+    fs_d = tuple(jnp.where(live, -visc_s * d, 0.0) for d in d_us)
 
     # ---- back onto the particles (002 eq 13) ----------------------------------
-    f1 = z(-(fn + fn_d)[:, None] * n + fs + fs_d)      # force on particle 1
-    m1 = twist[:, None] * n + bend if dim == 3 else bend
-    t1 = cross_r_f(r1, f1) + m1
-    t2 = cross_r_f(r2, -f1) - m1
+    f1 = zv(tuple(-(fn + fn_d) * nc + f + d for nc, f, d in zip(n, fs, fs_d)))  # on particle 1
+    if dim == 3:
+        m1 = tuple(twist * nc + b for nc, b in zip(n, bend))
+        t1 = tuple(a + m for a, m in zip(cross_r_f(r1, f1), m1))
+        t2 = tuple(a - m for a, m in zip(cross_r_f(r2, tuple(-f for f in f1)), m1))
+    else:
+        t1 = cross_r_f(r1, f1) + bend
+        t2 = cross_r_f(r2, tuple(-f for f in f1)) - bend
     n_part = particles.pos.shape[0]
     add = lambda rows, index: segment_add(rows, index, n_part, where=valid)  # padding rows out
-    force = add(f1, i) + add(-f1, j)
-    torque = add(z(t1), i) + add(z(t2), j)
+    force = add(f1, i) + add(tuple(-f for f in f1), j)
+    torque = add(zv(t1), i) + add(zv(t2), j)
+    stack = lambda v: jnp.stack(v, axis=-1) if isinstance(v, tuple) else v
 
     new_bonds = bonds._replace(
-        normal_force=fn, shear_force=fs, twist=twist, bend=bend, u_n=z(u_n), u_s=z(u_s),
+        normal_force=fn, shear_force=stack(fs), twist=twist, bend=stack(bend), u_n=z(u_n),
+        u_s=stack(zv(u_s)),
         alpha=alpha, beta=beta, moment_lost=moment_lost, broken=broken,
         break_mode=break_mode, break_step=break_step)
     return new_bonds, force, torque

@@ -21,8 +21,9 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
-from jdem.kinematics import (same_kind, components, cross_r_f, cross_w_r, dot, project_tangent,
-                             rotate_into_plane, safe_norm, scale, segment_add)
+from jdem.kinematics import (components, cross_r_f, cross_w_r, dot, floored_norm,
+                             project_tangent, rotate_into_plane, safe_norm, same_kind, scale,
+                             segment_add)
 from jdem.state import Config, Contacts, Params, Particles
 
 
@@ -62,13 +63,9 @@ def tangential_update(shear_old, normal, v_t, kt, fn, mu, dt, touching):
     """
     fs = rotate_into_plane(shear_old, normal)
     fs = same_kind([f - kt * dt * v for f, v in zip(components(fs), components(v_t))], shear_old)
-    # |F_t|, floored at the smallest normal number so that its gradient stays
-    # finite at F_t = 0 (written as one sqrt: XLA:CPU then computes it once
-    # instead of inside each consumer, see jdem.kinematics)
-    sq = dot(fs, fs)
-    mag = jnp.sqrt(jnp.maximum(sq, jnp.finfo(sq.dtype).tiny))
+    mag = floored_norm(fs)
     limit = mu * fn
-    ratio = jnp.where(mag > limit, limit / jnp.where(mag > 0, mag, 1.0), 1.0)
+    ratio = jnp.where(mag > limit, limit / mag, 1.0)
     return same_kind([jnp.where(touching, f * ratio, 0.0) for f in components(fs)], shear_old)
 
 

@@ -91,10 +91,25 @@ def safe_norm(v, eps=0.0):
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
 
 
+def floored_norm(v):
+    """Euclidean norm floored at the smallest normal number of its dtype: never zero,
+    so it can divide, and its gradient is finite everywhere (zero below the floor).
+
+    Written as one ``sqrt`` of a ``maximum``: XLA:CPU then computes it once,
+    whereas the masked form of :func:`safe_norm` used as a divisor made it
+    recompute the whole per-pair chain inside every consumer.
+    """
+    sq = dot(v, v)
+    return jnp.sqrt(jnp.maximum(sq, jnp.finfo(sq.dtype).tiny))
+
+
 def unit(v):
-    """Unit vector along the last axis, and the length; zero vectors give a zero unit."""
+    """Unit vector along the components, and the length; zero vectors give a zero unit."""
     n = safe_norm(v)
-    return v / jnp.where(n > 0, n, 1.0)[..., None], n
+    den = jnp.where(n > 0, n, 1.0)
+    if isinstance(v, tuple):
+        return tuple(c / den for c in v), n
+    return v / den[..., None], n
 
 
 def project_tangent(vec, normal):
@@ -112,15 +127,6 @@ def rotate_into_plane(vec, normal):
     proj = project_tangent(vec, normal)
     new = safe_norm(proj)
     return scale(jnp.where(new > 0, old / jnp.where(new > 0, new, 1.0), 0.0), proj)
-
-
-def split_rotation(w, normal):
-    """Split a rotation quantity into its twist (along ``normal``, scalar) and bending
-    part.  2D: twist is 0 and bending is ``w`` itself."""
-    if normal.shape[-1] == 2:
-        return jnp.zeros_like(w), w
-    tw = dot(w, normal)
-    return tw, w - tw[..., None] * normal
 
 
 def segment_add(values, index, n, where=None):
