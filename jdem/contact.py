@@ -132,9 +132,12 @@ def contact_forces(contacts: Contacts, particles: Particles, params: Params, con
     normal, overlap, touching = g.normal, g.overlap, g.touching  # normal: unit, from i to j
     fn, kn, kt = normal_law(overlap, g.r_eff, p.material[i], p.material[j], params,
                             config.contact_model)
-    # contact point in the middle of the overlap (000 fig 4-4)
-    arm_i = scale(p.radius[i] - 0.5 * overlap, normal)
-    arm_j = scale(-(p.radius[j] - 0.5 * overlap), normal)
+    # contact point in the middle of the overlap (000 fig 4-4): at a_i n from the
+    # centre of i and at -a_j n from the centre of j
+    a_i = p.radius[i] - 0.5 * overlap
+    a_j = p.radius[j] - 0.5 * overlap
+    arm_i = scale(a_i, normal)
+    arm_j = scale(-a_j, normal)
     # relative velocity at the contact point (000 eq 4-11..4-15)
     if p.angvel.ndim == 1:  # 2D: the spin is a scalar per particle
         w_i, w_j = p.angvel[i], p.angvel[j]
@@ -153,10 +156,13 @@ def contact_forces(contacts: Contacts, particles: Particles, params: Params, con
                               touching)
 
     force_i = tuple(-fn_total * nc + s for s, nc in zip(shear, normal))
+    # torques a_i n x F_i on i and (-a_j n) x (-F_i) on j: with n x n = 0 both are
+    # multiples of n x shear
+    n_cross_shear = cross_r_f(normal, shear)
     # rows not touching carry exactly zero force and are left out of the sums
     add = lambda rows, index: segment_add(rows, index, n, where=touching)
     force = add(force_i, i) - add(force_i, j)
-    torque = add(cross_r_f(arm_i, force_i), i) + add(cross_r_f(arm_j, tuple(-f for f in force_i)), j)
+    torque = add(scale(a_i, n_cross_shear), i) + add(scale(a_j, n_cross_shear), j)
     ones = touching.astype(jnp.int32)
     count = add(ones, i) + add(ones, j)
     return contacts._replace(shear=jnp.stack(shear, axis=-1)), force, torque, count
