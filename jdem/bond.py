@@ -26,9 +26,9 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from jdem.kinematics import (components, cross_r_f, cross_w_r, dot, floored_norm,
-                             project_tangent, rotate_into_plane, safe_norm, scale, segment_add,
-                             unit)
+from jdem.kinematics import (components, cross_r_f, dot, floored_norm, project_tangent,
+                             relative_velocity, rotate_into_plane, rows, safe_norm, scale,
+                             segment_add, unit)
 from jdem.state import Bonds, Particles, Params, empty_bonds
 
 Array = jnp.ndarray
@@ -204,13 +204,7 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     r2 = scale(-(particles.radius[j] / length_d), dx)
 
     # 002 eq 12: displacement increment of 1 relative to 2 at the contact point.
-    if dim == 2:
-        w1, w2 = particles.angvel[i], particles.angvel[j]
-    else:
-        w1 = tuple(w[i] for w in components(particles.angvel))
-        w2 = tuple(w[j] for w in components(particles.angvel))
-    v_rel = tuple((v[i] + s1) - (v[j] + s2) for v, s1, s2 in
-                  zip(components(particles.vel), cross_w_r(w1, r1), cross_w_r(w2, r2)))
+    v_rel = relative_velocity(particles.vel, particles.angvel, i, j, r1, r2)
     du = tuple(c * dt for c in v_rel)
     du_n = dot(du, n)
     d_open = -du_n                                   # Δu_n, opening positive
@@ -267,6 +261,7 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
 
     # ---- moments -------------------------------------------------------------
     # 002 eq 4: relative rotation increment split into twist (along n) and bending.
+    w1, w2 = rows(particles.angvel, i), rows(particles.angvel, j)
     if dim == 3:
         dth = tuple((a - b) * dt for a, b in zip(w1, w2))
         dth_n = dot(dth, n)

@@ -21,8 +21,8 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
-from jdem.kinematics import (components, cross_r_f, cross_w_r, dot, floored_norm,
-                             project_tangent, rotate_into_plane, safe_norm, same_kind, scale,
+from jdem.kinematics import (components, cross_r_f, dot, floored_norm, project_tangent,
+                             relative_velocity, rotate_into_plane, safe_norm, same_kind, scale,
                              segment_add)
 from jdem.state import Config, Contacts, Params, Particles
 
@@ -138,14 +138,7 @@ def contact_forces(contacts: Contacts, particles: Particles, params: Params, con
     a_j = p.radius[j] - 0.5 * overlap
     arm_i = scale(a_i, normal)
     arm_j = scale(-a_j, normal)
-    # relative velocity at the contact point (000 eq 4-11..4-15)
-    if p.angvel.ndim == 1:  # 2D: the spin is a scalar per particle
-        w_i, w_j = p.angvel[i], p.angvel[j]
-    else:
-        w_i = tuple(w[i] for w in components(p.angvel))
-        w_j = tuple(w[j] for w in components(p.angvel))
-    v_rel = tuple((v[i] + si) - (v[j] + sj) for v, si, sj in
-                  zip(components(p.vel), cross_w_r(w_i, arm_i), cross_w_r(w_j, arm_j)))
+    v_rel = relative_velocity(p.vel, p.angvel, i, j, arm_i, arm_j)
     approach = dot(v_rel, normal)  # > 0 when closing
     v_t = project_tangent(v_rel, normal)
 

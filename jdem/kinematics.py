@@ -52,6 +52,14 @@ def scale(s, v):
     return s[..., None] * v
 
 
+def rows(field, index):
+    """Rows ``index`` (R,) of a per-particle field: an (N,) scalar field gives (R,)
+    (a 2D spin), an (N, d) array a component tuple of d (R,) arrays."""
+    if field.ndim == 1:
+        return field[index]
+    return tuple(c[index] for c in components(field))
+
+
 def _cross3(a, b):
     ax, ay, az = components(a)
     bx, by, bz = components(b)
@@ -73,6 +81,18 @@ def cross_r_f(r, f):
         fx, fy = components(f)
         return rx * fy - ry * fx
     return _cross3(r, f)
+
+
+def relative_velocity(vel, spin, i, j, arm_i, arm_j):
+    """Velocity of the point at offset ``arm_i`` on body i relative to the point at
+    ``arm_j`` on body j, (v_i + w_i x arm_i) - (v_j + w_j x arm_j) (000 eq 4-11..4-15).
+
+    vel (N, d) and spin ((N,) in 2D, (N, 3) in 3D) are per-particle fields; i, j (R,)
+    the rows; the arms component tuples of (R,) arrays.  Returns a component tuple.
+    """
+    return tuple((vi + si) - (vj + sj) for vi, vj, si, sj in
+                 zip(rows(vel, i), rows(vel, j), cross_w_r(rows(spin, i), arm_i),
+                     cross_w_r(rows(spin, j), arm_j)))
 
 
 def dot(a, b):

@@ -149,25 +149,26 @@ def test_bonds_join_exactly_the_pairs_within_the_gap_tolerance(rect):
 
 
 FLOATER_POROSITY = 0.22   # looser than ``rect``: most packings leave a few floaters
+FLOATER_GAP = 0.02e-3     # bonding gap tolerance [m] of the floater tests
 
 
 @functools.lru_cache(maxsize=None)
-def _floater_seed(g):
-    """The first of seeds 3, 4, 5 whose FLOATER_POROSITY packing (gap tolerance g)
+def _floater_seed():
+    """The first of seeds 3, 4, 5 whose FLOATER_POROSITY packing (gap FLOATER_GAP)
     leaves floaters.  Whether a packing has any is a matter of chance (seeds 0-5:
     five of six at this porosity, one of six at 0.2), and a packing without one
     would leave the floater tests nothing to check."""
     for seed in (3, 4, 5):
         sp = generate("rectangle", SQUARE, *R2, target_porosity=FLOATER_POROSITY, seed=seed,
-                      bond=False, gap_tolerance=g, floaters="keep")
+                      bond=False, gap_tolerance=FLOATER_GAP, floaters="keep")
         if sp.info["n_floaters"] > 0:
             return seed, sp
     raise AssertionError("no packing with floaters among seeds 3, 4, 5")
 
 
 def test_bond_false_and_kept_floaters():
-    g = 0.02e-3
-    _, sp = _floater_seed(g)
+    g = FLOATER_GAP
+    _, sp = _floater_seed()
     assert int(np.sum(np.asarray(sp.bonds.valid))) == 0
     pos, rad = _arrays(sp)
     i, j, gap = _all_gaps(pos, rad)
@@ -179,10 +180,9 @@ def test_bond_false_and_kept_floaters():
 
 
 def test_floaters_can_be_attached_or_removed():
-    g = 0.02e-3
-    seed, kept = _floater_seed(g)
+    seed, kept = _floater_seed()
     n_free = kept.info["n_floaters"]
-    kw = dict(target_porosity=FLOATER_POROSITY, seed=seed, gap_tolerance=g)
+    kw = dict(target_porosity=FLOATER_POROSITY, seed=seed, gap_tolerance=FLOATER_GAP)
     attached = generate("rectangle", SQUARE, *R2, floaters="attach", **kw)
     removed = generate("rectangle", SQUARE, *R2, floaters="remove", **kw)
     assert n_free > 0
