@@ -14,9 +14,11 @@ how many it needed (``Contacts.n_pairs``, ``Contacts.max_in_cell``); the host
 loop in :mod:`jdem.simulate` sees :func:`overflowed`, re-allocates larger and
 re-runs the chunk, so a contact is never dropped silently.
 
-Tangential contact history survives a rebuild: pairs are kept sorted by
-(i, j), and every pair of the new list looks up its old row by binary search.
-Bonded pairs (see :mod:`jdem.bond`) are excluded: the bond owns them.
+The list holds each pair once, as i < j, grouped by i in ascending order (the
+partners of one particle follow the order of its neighbour cells).  Tangential
+contact history survives a rebuild: every pair of the new list looks for its
+(i, j) among the old rows of particle i.  Bonded pairs (see :mod:`jdem.bond`)
+are excluded: the bond owns them.
 """
 from __future__ import annotations
 
@@ -61,8 +63,14 @@ def _cell_table(particles: Particles, config: Config):
     k = config.max_per_cell
     coords = _cell_coords(particles.pos, config)
     cell = jnp.where(particles.valid, _ravel(coords, config), config.n_cells)
-    order = jnp.argsort(cell, stable=True)
-    sorted_cell = cell[order]
+    if (config.n_cells + 1) * n < 2**31:
+        # particles ordered by (cell, index) through one int32 key: sorting a single
+        # array is ~4x faster on XLA:CPU than the equivalent stable argsort
+        key = jnp.sort(cell * n + jnp.arange(n, dtype=jnp.int32))
+        order, sorted_cell = key % n, key // n
+    else:
+        order = jnp.argsort(cell, stable=True)
+        sorted_cell = cell[order]
     first = jnp.searchsorted(sorted_cell, sorted_cell, side="left")
     rank = jnp.arange(n, dtype=jnp.int32) - first.astype(jnp.int32)
     in_grid = sorted_cell < config.n_cells
@@ -101,32 +109,6 @@ def _candidates(particles: Particles, config: Config):
 
 
 # ----------------------------------------------------------------------------- search
-def lex_search(keys_i, keys_j, n_valid, query_i, query_j):
-    """Binary search of (query_i, query_j) in the lexicographically sorted prefix
-    ``keys[:n_valid]``.  Returns (row, found); vectorised over the queries."""
-    size = keys_i.shape[0]
-    if size == 0:
-        z = jnp.zeros(query_i.shape, jnp.int32)
-        return z, jnp.zeros(query_i.shape, bool)
-    lo = jnp.zeros(query_i.shape, jnp.int32)
-    hi = jnp.broadcast_to(jnp.asarray(n_valid, jnp.int32), query_i.shape)
-
-    def body(_, bounds):
-        lo, hi = bounds
-        mid = (lo + hi) // 2
-        mi, mj = keys_i[jnp.clip(mid, 0, size - 1)], keys_j[jnp.clip(mid, 0, size - 1)]
-        less = (mi < query_i) | ((mi == query_i) & (mj < query_j))
-        active = lo < hi
-        lo = jnp.where(active & less, mid + 1, lo)
-        hi = jnp.where(active & ~less, mid, hi)
-        return lo, hi
-
-    lo, _ = jax.lax.fori_loop(0, max(1, math.ceil(math.log2(size + 1)) + 1), body, (lo, hi))
-    row = jnp.clip(lo, 0, size - 1)
-    found = (lo < n_valid) & (keys_i[row] == query_i) & (keys_j[row] == query_j)
-    return row, found
-
-
 def _bonded(bonds, cand):
     """Mask (N, M): is candidate ``cand[i, k]`` bonded to particle i?
 
@@ -154,6 +136,87 @@ def _bonded(bonds, cand):
     return (lo < end[:, None]) & (bonds.j[at] == cand)
 
 
+def _compact(mask, cand, cap, max_per_cell):
+    """Lay the kept candidates ``cand[mask]`` (N, M) out row after row in ``cap`` slots.
+
+    Each row of the mask is cut into groups of w <= 31 slots (one neighbour cell
+    per group when ``max_per_cell`` <= 31) and every group is packed into an int32
+    bit set by a reduction.  Bit counts give each group's exclusive prefix within
+    its row and each row's start in the list; then every list slot finds its row
+    (binary search over the row ends), its group (binary search over the row's
+    prefixes) and its bit (a scan over w bits).  No sort: a per-row sort of the
+    (N, M) candidates cost ~3x the whole build.  Packing by a reduction also
+    makes XLA keep the (N, M / w) bit sets in memory, whereas gathering straight
+    from the mask made it recompute the distance test inside every gather.
+
+    Returns ``(i, j, valid, count)``: (cap,) arrays with rows grouped by i and the
+    partners in candidate order, and the number of kept pairs (may exceed cap).
+    """
+    n, m = cand.shape
+    w = min(max_per_cell, 31)
+    groups = -(-m // w)
+    if groups * w != m:  # pad the rows to whole groups with empty slots
+        mask = jnp.pad(mask, ((0, 0), (0, groups * w - m)))
+        cand = jnp.pad(cand, ((0, 0), (0, groups * w - m)), constant_values=n)
+    bits = jnp.asarray([1 << b for b in range(w)], jnp.int32)
+    code = jnp.sum(jnp.where(mask.reshape(n, groups, w), bits, 0), axis=2)  # (N, G)
+    per_group = jax.lax.population_count(code)
+    before = jnp.cumsum(per_group, axis=1) - per_group  # exclusive prefix in the row
+    per_row = before[:, -1] + per_group[:, -1]
+    ends = jnp.cumsum(per_row)
+    count = ends[-1]
+    slot = jnp.arange(cap, dtype=jnp.int32)
+    row = jnp.minimum(jnp.searchsorted(ends, slot, side="right"), n - 1).astype(jnp.int32)
+    rank = slot - (ends[row] - per_row[row])  # index of the pair within its row
+    # the row's group holding that pair: the last group whose prefix is <= rank
+    flat_before = before.reshape(-1)
+    lo, hi = jnp.zeros_like(rank), jnp.full_like(rank, groups)
+    for _ in range(math.ceil(math.log2(groups + 1))):
+        mid = (lo + hi) // 2
+        le = flat_before[row * groups + jnp.minimum(mid, groups - 1)] <= rank
+        active = lo < hi
+        lo, hi = jnp.where(active & le, mid + 1, lo), jnp.where(active & ~le, mid, hi)
+    group = jnp.clip(lo - 1, 0, groups - 1)
+    at = row * groups + group
+    target = rank - flat_before[at]  # the pair is the target-th set bit of the group
+    word = code.reshape(-1)[at]
+    seen, bit_at = jnp.zeros_like(rank), jnp.zeros_like(rank)
+    for b in range(w):
+        bit = (word >> b) & 1
+        bit_at = jnp.where((bit > 0) & (seen == target), b, bit_at)
+        seen = seen + bit
+    valid = slot < count
+    new_i = jnp.where(valid, row, 0)
+    new_j = jnp.where(valid, cand.reshape(-1)[at * w + bit_at], 0).astype(jnp.int32)
+    return new_i, new_j, valid, count
+
+
+def _carry_history(contacts: Contacts, new_i, new_j, valid, n):
+    """Tangential history (cap, d) of the new pairs: the old row's value where (i, j)
+    was listed before, else 0.  The old list is grouped by i, so each new pair scans
+    the old rows of its particle i (a loop as long as the longest such run)."""
+    size = contacts.i.shape[0]
+    if size == 0:
+        return jnp.zeros(new_i.shape + contacts.shear.shape[1:], contacts.shear.dtype)
+    n_old = jnp.sum(contacts.valid).astype(jnp.int32)
+    keys = jnp.where(jnp.arange(size) < n_old, contacts.i, n)  # valid rows come first
+    start = jnp.searchsorted(keys, jnp.arange(n + 1, dtype=jnp.int32), side="left")
+    start = start.astype(jnp.int32)
+    first, stop = start[new_i], start[new_i + 1]
+
+    def scan_one_more(carry):
+        k, old_row, found = carry
+        at = jnp.minimum(first + k, size - 1)
+        hit = (first + k < stop) & (contacts.j[at] == new_j)
+        return k + 1, jnp.where(hit, at, old_row), found | hit
+
+    longest = jnp.max(start[1:] - start[:-1])
+    _, old_row, found = jax.lax.while_loop(
+        lambda carry: carry[0] < longest, scan_one_more,
+        (jnp.zeros((), jnp.int32), jnp.zeros_like(new_i), jnp.zeros(new_i.shape, bool)))
+    return jnp.where((found & valid)[:, None], contacts.shear[old_row], 0.0)
+
+
 # ----------------------------------------------------------------------------- build
 @functools.partial(jax.jit, static_argnames=("config",))
 def build(contacts: Contacts, particles: Particles, config: Config, bonds=None) -> Contacts:
@@ -177,24 +240,8 @@ def build(contacts: Contacts, particles: Particles, config: Config, bonds=None) 
     mask = real & (gap2 < reach * reach)
     if bonds is not None and bonds.i.shape[0] > 0:
         mask = mask & ~_bonded(bonds, cand)
-    # compaction: each row sorted (partners ascending, misses last), rows laid end to
-    # end; the list comes out ordered by (i, j), which the history lookup relies on
-    m = cand.shape[1]
-    keyed = jnp.sort(jnp.where(mask, cand, n), axis=1)
-    per_row = jnp.sum(mask, axis=1, dtype=jnp.int32)
-    ends = jnp.cumsum(per_row)
-    count = ends[-1]
-    slot = jnp.arange(cap, dtype=jnp.int32)
-    row = jnp.minimum(jnp.searchsorted(ends, slot, side="right"), n - 1).astype(jnp.int32)
-    col = jnp.clip(slot - (ends[row] - per_row[row]), 0, m - 1)
-    valid = slot < count
-    new_i = jnp.where(valid, row, 0)
-    new_j = jnp.where(valid, keyed[row, col], 0).astype(jnp.int32)
-    # carry the tangential history over (design: contact history survives rebuilds)
-    n_old = jnp.sum(contacts.valid).astype(jnp.int32)
-    row, found = lex_search(contacts.i, contacts.j, n_old, new_i, new_j)
-    keep = (found & valid)[:, None]
-    shear = jnp.where(keep, contacts.shear[row] if cap else contacts.shear, 0.0)
+    new_i, new_j, valid, count = _compact(mask, cand, cap, config.max_per_cell)
+    shear = _carry_history(contacts, new_i, new_j, valid, n)
     return Contacts(
         i=new_i, j=new_j, valid=valid, shear=shear,
         pos_at_build=particles.pos, radius_at_build=particles.radius,

@@ -46,7 +46,7 @@ def test_cell_list_finds_exactly_the_brute_force_pairs(dim):
     assert got2 == _brute_pairs(moved, rad, 2e-4)
 
 
-def test_overflow_is_flagged_and_pairs_are_sorted():
+def test_overflow_is_flagged_and_pairs_are_grouped_by_i():
     rng = np.random.default_rng(0)
     pos = rng.uniform(0, 0.01, size=(200, 2))
     p = jdem.make_particles(pos, np.full(200, 5e-4))
@@ -57,8 +57,23 @@ def test_overflow_is_flagged_and_pairs_are_sorted():
     big, cfg2 = neighbors.allocate(p, cfg)
     assert not bool(neighbors.overflowed(big, cfg2))
     v = np.asarray(big.valid)
-    keys = list(zip(np.asarray(big.i)[v].tolist(), np.asarray(big.j)[v].tolist()))
-    assert keys == sorted(keys) and len(keys) == int(big.n_pairs)
+    i, j = np.asarray(big.i)[v], np.asarray(big.j)[v]
+    assert np.all(np.diff(i) >= 0) and np.all(i < j)  # grouped by i, each pair once
+    assert len(set(zip(i.tolist(), j.tolist()))) == len(i) == int(big.n_pairs)
+    assert not np.any(np.asarray(big.valid)[len(i):])  # valid rows come first
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_wide_cells_give_the_same_pairs(dim):
+    """Cells of more than 31 slots are packed in several bit sets: same pairs."""
+    rng = np.random.default_rng(5)
+    pos = rng.uniform(0, 0.01 if dim == 2 else 0.005, size=(250, dim))
+    p = jdem.make_particles(pos, rng.uniform(3e-4, 5e-4, size=250))
+    cfg = jdem.make_config(p, skin=1e-4)
+    c, cfg = neighbors.allocate(p, cfg)
+    wide, _ = neighbors.allocate(p, cfg.replace(max_per_cell=45))
+    assert cfg.max_per_cell <= 31
+    assert _pairs(wide) == _pairs(c) == _brute_pairs(pos, np.asarray(p.radius), 1e-4)
 
 
 def test_history_survives_rebuild_and_bonded_pairs_are_excluded():
