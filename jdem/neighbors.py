@@ -14,10 +14,9 @@ how many it needed (``Contacts.n_pairs``, ``Contacts.max_in_cell``); the host
 loop in :mod:`jdem.simulate` sees :func:`overflowed`, re-allocates larger and
 re-runs the chunk, so a contact is never dropped silently.
 
-The list holds each pair once, as i < j, grouped by i in ascending order (the
-partners of one particle follow the order of its neighbour cells).  Tangential
-contact history survives a rebuild: every pair of the new list looks for its
-(i, j) among the old rows of particle i.  Bonded pairs (see :mod:`jdem.bond`)
+The list holds each pair once, as i < j, sorted by (i, j).  Tangential contact
+history survives a rebuild: every pair of the new list looks for its (i, j)
+among the old rows of particle i.  Bonded pairs (see :mod:`jdem.bond`)
 are excluded: the bond owns them.
 """
 from __future__ import annotations
@@ -144,13 +143,14 @@ def _compact(mask, cand, cap, max_per_cell):
     bit set by a reduction.  Bit counts give each group's exclusive prefix within
     its row and each row's start in the list; then every list slot finds its row
     (binary search over the row ends), its group (binary search over the row's
-    prefixes) and its bit (a scan over w bits).  No sort: a per-row sort of the
-    (N, M) candidates cost ~3x the whole build.  Packing by a reduction also
+    prefixes) and its bit (a scan over w bits); a sort of the kept pairs' keys
+    finally orders each row by partner.  A per-row sort of all (N, M) candidates
+    instead cost ~3x this whole build.  Packing by a reduction also
     makes XLA keep the (N, M / w) bit sets in memory, whereas gathering straight
     from the mask made it recompute the distance test inside every gather.
 
-    Returns ``(i, j, valid, count)``: (cap,) arrays with rows grouped by i and the
-    partners in candidate order, and the number of kept pairs (may exceed cap).
+    Returns ``(i, j, valid, count)``: (cap,) arrays sorted by (i, j), valid rows
+    first, and the number of kept pairs (may exceed cap).
     """
     n, m = cand.shape
     w = min(max_per_cell, 31)
@@ -186,9 +186,15 @@ def _compact(mask, cand, cap, max_per_cell):
         bit_at = jnp.where((bit > 0) & (seen == target), b, bit_at)
         seen = seen + bit
     valid = slot < count
-    new_i = jnp.where(valid, row, 0)
-    new_j = jnp.where(valid, cand.reshape(-1)[at * w + bit_at], 0).astype(jnp.int32)
-    return new_i, new_j, valid, count
+    new_j = cand.reshape(-1)[at * w + bit_at].astype(jnp.int32)
+    # order each row by partner: the list (and the order in which a particle's
+    # contact forces are summed) then does not depend on the grid
+    if n * n < 2**31:  # one int32 key per pair; empty slots sort last
+        key = jnp.sort(jnp.where(valid, row * n + new_j, jnp.iinfo(jnp.int32).max))
+        row, new_j = key // n, key % n
+    else:
+        row, new_j = jax.lax.sort((jnp.where(valid, row, n), new_j), num_keys=2)
+    return jnp.where(valid, row, 0), jnp.where(valid, new_j, 0), valid, count
 
 
 def _carry_history(contacts: Contacts, new_i, new_j, valid, n):
