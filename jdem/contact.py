@@ -21,9 +21,9 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
-from jdem.kinematics import (components, cross_r_f, dot, floored_norm, project_tangent,
-                             relative_velocity, rotate_into_plane, safe_norm, same_kind, scale,
-                             segment_add)
+from jdem.kinematics import (components, computed_once, cross_r_f, dot, floored_norm,
+                             project_tangent, relative_velocity, rotate_into_plane, safe_norm,
+                             same_kind, scale, segment_add)
 from jdem.state import Config, Contacts, Params, Particles
 
 
@@ -32,18 +32,38 @@ def harmonic_mix(a, b):
     return 2.0 * a * b / jnp.where(a + b > 0, a + b, 1.0)
 
 
+def mean_mix(a, b):
+    """Poisson ratios of unlike particles: the mean."""
+    return 0.5 * (a + b)
+
+
+def pair_property(table, mat_a, mat_b, mix):
+    """``mix(table[a], table[b])`` for material indices ``mat_a``, ``mat_b`` (...).
+
+    ``table`` (M,) holds one value per material.  The (M, M) mixed table is formed
+    once and looked up per pair (one gather instead of two plus the mixing); with a
+    single material the result is a scalar and no per-pair lookup is made.  Either
+    way each value is the same ``mix`` of the same two numbers, bit for bit.
+    """
+    m = table.shape[0]
+    if m == 1:
+        return mix(table[0], table[0])
+    return mix(table[:, None], table[None, :]).reshape(-1)[mat_a * m + mat_b]
+
+
 def normal_law(overlap, r_eff, mat_a, mat_b, params: Params, model: str):
     """Normal force and tangent stiffnesses for an overlap >= 0.
 
     overlap, r_eff: (...) [m]; mat_a, mat_b: material indices (...).
-    Returns (F_n [N], k_n tangent [N/m], k_t [N/m]).
+    Returns (F_n [N], k_n tangent [N/m], k_t [N/m]); with a single material the
+    stiffnesses of the linear law are scalars.
     """
     if model == "linear":
-        kn = harmonic_mix(params.kn[mat_a], params.kn[mat_b])
-        kt = harmonic_mix(params.ks[mat_a], params.ks[mat_b])
+        kn = pair_property(params.kn, mat_a, mat_b, harmonic_mix)
+        kt = pair_property(params.ks, mat_a, mat_b, harmonic_mix)
         return kn * overlap, kn, kt
-    e = harmonic_mix(params.youngs[mat_a], params.youngs[mat_b])
-    nu = 0.5 * (params.poisson[mat_a] + params.poisson[mat_b])
+    e = pair_property(params.youngs, mat_a, mat_b, harmonic_mix)
+    nu = pair_property(params.poisson, mat_a, mat_b, mean_mix)
     h = 2.0 * e / (3.0 * (1.0 - nu**2)) * jnp.sqrt(r_eff)  # 000 eq 4-6
     root = jnp.sqrt(jnp.where(overlap > 0, overlap, 0.0))
     fn = h * overlap * root
@@ -128,26 +148,30 @@ def contact_forces(contacts: Contacts, particles: Particles, params: Params, con
     p = particles
     n = p.pos.shape[0]
     i, j = contacts.i, contacts.j
-    g = _pair_geometry_components(contacts, p)
-    normal, overlap, touching = g.normal, g.overlap, g.touching  # normal: unit, from i to j
-    fn, kn, kt = normal_law(overlap, g.r_eff, p.material[i], p.material[j], params,
-                            config.contact_model)
-    # contact point in the middle of the overlap (000 fig 4-4): at a_i n from the
-    # centre of i and at -a_j n from the centre of j
-    a_i = p.radius[i] - 0.5 * overlap
-    a_j = p.radius[j] - 0.5 * overlap
-    arm_i = scale(a_i, normal)
-    arm_j = scale(-a_j, normal)
-    v_rel = relative_velocity(p.vel, p.angvel, i, j, arm_i, arm_j)
-    approach = dot(v_rel, normal)  # > 0 when closing
-    v_t = project_tangent(v_rel, normal)
 
-    m_eff = p.mass[i] * p.mass[j] / (p.mass[i] + p.mass[j])
-    fn_total = jnp.where(touching, jnp.maximum(fn + dashpot(kn, m_eff, approach, params), 0.0), 0.0)
-    mu = jnp.minimum(params.friction[p.material[i]], params.friction[p.material[j]])
-    shear = tangential_update(components(contacts.shear), normal, v_t, kt, fn, mu, params.dt,
-                              touching)
+    def per_pair_law():
+        g = _pair_geometry_components(contacts, p)
+        normal, overlap, touching = g.normal, g.overlap, g.touching  # normal: unit, i to j
+        fn, kn, kt = normal_law(overlap, g.r_eff, p.material[i], p.material[j], params,
+                                config.contact_model)
+        # contact point in the middle of the overlap (000 fig 4-4): at a_i n from the
+        # centre of i and at -a_j n from the centre of j
+        a_i = p.radius[i] - 0.5 * overlap
+        a_j = p.radius[j] - 0.5 * overlap
+        v_rel = relative_velocity(p.vel, p.angvel, i, j, scale(a_i, normal), scale(-a_j, normal))
+        approach = dot(v_rel, normal)  # > 0 when closing
+        v_t = project_tangent(v_rel, normal)
+        m_eff = p.mass[i] * p.mass[j] / (p.mass[i] + p.mass[j])
+        fn_total = jnp.where(touching, jnp.maximum(fn + dashpot(kn, m_eff, approach, params), 0.0),
+                             0.0)
+        mu = pair_property(params.friction, p.material[i], p.material[j], jnp.minimum)
+        shear = tangential_update(components(contacts.shear), normal, v_t, kt, fn, mu, params.dt,
+                                  touching)
+        return normal, shear, fn_total, a_i, a_j, touching
 
+    # the law once, into memory (n_pairs >= 0 always: see kinematics.computed_once)
+    normal, shear, fn_total, a_i, a_j, touching = computed_once(per_pair_law,
+                                                                contacts.n_pairs >= 0)
     force_i = tuple(-fn_total * nc + s for s, nc in zip(shear, normal))
     # torques a_i n x F_i on i and (-a_j n) x (-F_i) on j: with n x n = 0 both are
     # multiples of n x shear

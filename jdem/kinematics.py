@@ -19,6 +19,7 @@ slower on XLA:CPU.
 """
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 
@@ -164,3 +165,22 @@ def segment_add(values, index, n, where=None):
     if isinstance(values, tuple):
         return jnp.stack([segment_add(c, index, n) for c in values], axis=-1)
     return jnp.zeros((n,) + values.shape[1:], values.dtype).at[index].add(values, mode="drop")
+
+
+def computed_once(fn, always_true):
+    """``fn()``, evaluated as a computation of its own so that its outputs are
+    arrays in memory, each computed once.
+
+    XLA:CPU fuses a long elementwise chain (e.g. the per-pair contact law) into
+    every fused consumer of its results and recomputes it there: for the 3D
+    contact kernel a dozen times (shear columns, force and torque rows for both
+    sides).  A branch of a conditional is not fused with the code around it, so
+    ``fn`` runs inside ``lax.cond(always_true, fn, zeros)``.  ``always_true`` must
+    be a traced boolean scalar that is true (the zero branch is never meant to
+    run); it has to be traced, or XLA folds the conditional away.  Under ``vmap``
+    a batched predicate turns the conditional into a select (both branches are
+    evaluated, the zero one costs nothing); gradients pass through ``fn``.
+    """
+    shapes = jax.eval_shape(fn)
+    zeros = lambda: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)  # noqa: E731
+    return jax.lax.cond(always_true, fn, zeros)

@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from jdem.contact import dashpot, normal_law, tangential_update
-from jdem.kinematics import components, cross_r_f, cross_w_r, dot, scale
+from jdem.contact import dashpot, normal_law, pair_property, tangential_update
+from jdem.kinematics import components, computed_once, cross_r_f, cross_w_r, dot, scale
 from jdem.state import Config, Params, Particles, Walls
 
 
@@ -55,22 +55,31 @@ def wall_forces(walls: Walls, particles: Particles, params: Params, config: Conf
         return walls, jnp.zeros_like(p.pos), zero_t, jnp.zeros(p.pos.shape[:1], jnp.int32)
     # vectors as component tuples of (W, N) arrays (see jdem.kinematics)
     normal = tuple(c[:, None] for c in components(walls.normal))  # (W, 1) each
-    overlap, touching, fn, kn, kt = wall_law(walls, p, params, config)
-    arm = scale(-(p.radius[None] - 0.5 * overlap), normal)  # centre -> contact point
-    spin = p.angvel[None] if p.angvel.ndim == 1 else tuple(c[None] for c in components(p.angvel))
-    v_rel = tuple(v[None] + s - vw[:, None]
-                  for v, s, vw in zip(components(p.vel), cross_w_r(spin, arm), components(walls.vel)))
-    approach = -dot(v_rel, normal)  # > 0 when the particle closes on the wall
-    v_t = tuple(v + approach * n for v, n in zip(v_rel, normal))
-    fn_total = jnp.where(touching, jnp.maximum(fn + dashpot(kn, p.mass[None], approach, params), 0.0), 0.0)
-    mu = jnp.minimum(params.friction[p.material][None], params.friction[walls.material][:, None])
-    shear = tangential_update(components(walls.shear), normal, v_t, kt, fn, mu, params.dt, touching)
+
+    def per_pair_law():
+        overlap, touching, fn, kn, kt = wall_law(walls, p, params, config)
+        arm = scale(-(p.radius[None] - 0.5 * overlap), normal)  # centre -> contact point
+        spin = p.angvel[None] if p.angvel.ndim == 1 else tuple(c[None] for c in components(p.angvel))
+        v_rel = tuple(v[None] + s - vw[:, None] for v, s, vw in
+                      zip(components(p.vel), cross_w_r(spin, arm), components(walls.vel)))
+        approach = -dot(v_rel, normal)  # > 0 when the particle closes on the wall
+        v_t = tuple(v + approach * n for v, n in zip(v_rel, normal))
+        fn_total = jnp.where(touching, jnp.maximum(fn + dashpot(kn, p.mass[None], approach, params),
+                                                   0.0), 0.0)
+        mu = pair_property(params.friction, p.material[None], walls.material[:, None], jnp.minimum)
+        shear = tangential_update(components(walls.shear), normal, v_t, kt, fn, mu, params.dt,
+                                  touching)
+        return arm, shear, fn_total, touching, jnp.where(touching, kn, 0.0)
+
+    # the law once, into memory (counts are >= 0: see kinematics.computed_once)
+    arm, shear, fn_total, touching, kn_touching = computed_once(
+        per_pair_law, jnp.all(walls.n_contacts >= 0))
     force_pw = tuple(fn_total * n + s for n, s in zip(normal, shear))  # on the particle
     torque_pw = cross_r_f(arm, force_pw)
     walls = walls._replace(shear=jnp.stack(shear, axis=-1),
                            force=-jnp.stack([jnp.sum(f, axis=1) for f in force_pw], axis=-1),
                            n_contacts=jnp.sum(touching, axis=1).astype(jnp.int32))
-    kn_sum = jnp.sum(jnp.where(touching, kn, 0.0), axis=1)
+    kn_sum = jnp.sum(kn_touching, axis=1)
     walls = _servo(walls, kn_sum, params)
     force = jnp.stack([jnp.sum(f, axis=0) for f in force_pw], axis=-1)
     if isinstance(torque_pw, tuple):
