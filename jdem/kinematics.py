@@ -167,6 +167,9 @@ def segment_add(values, index, n, where=None):
     return jnp.zeros((n,) + values.shape[1:], values.dtype).at[index].add(values, mode="drop")
 
 
+COMPUTED_ONCE_MIN_ROWS = 16384  # see computed_once
+
+
 def computed_once(fn, always_true):
     """``fn()``, evaluated as a computation of its own so that its outputs are
     arrays in memory, each computed once.
@@ -180,7 +183,14 @@ def computed_once(fn, always_true):
     run); it has to be traced, or XLA folds the conditional away.  Under ``vmap``
     a batched predicate turns the conditional into a select (both branches are
     evaluated, the zero one costs nothing); gradients pass through ``fn``.
+
+    Small problems (outputs below ``COMPUTED_ONCE_MIN_ROWS`` rows) call ``fn``
+    directly: there the conditional's fixed cost per step outweighs the
+    recomputation (a 1,047-disc UCS forward run took 2.76 s with it, 2.40 s
+    without).  The results are the same either way.
     """
     shapes = jax.eval_shape(fn)
+    if max(s.size for s in jax.tree_util.tree_leaves(shapes)) < COMPUTED_ONCE_MIN_ROWS:
+        return fn()
     zeros = lambda: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)  # noqa: E731
     return jax.lax.cond(always_true, fn, zeros)
