@@ -538,7 +538,7 @@ def profile_case(state, params, config, repeats, log=print, detail=True, loop_st
         out["build_candidates_filled"] = float(jnp.mean(cand < n))
         out["build_candidates_kept"] = int(jnp.sum(mask))
         rec_part("loop.build.cell_table", lambda pp, k: neighbors._cell_table(pp, config), 0,
-                 "argsort particles into cells, fill the (cells, K) table")
+                 "sort particles into cells (one int32 key), fill the (cells, K) table")
         rec_part("loop.build.candidates", lambda pp, k: neighbors._candidates(pp, config), 0,
                  "cell table + (N, 3^d K) candidate gather (includes cell_table)")
         rec_part("loop.build.mask", lambda pp, k: cand_mask(pp, k), cand,
@@ -546,13 +546,12 @@ def profile_case(state, params, config, repeats, log=print, detail=True, loop_st
 
         def history(x, cc):
             acc, prev = x
-            nv = jnp.sum(cc.valid).astype(jnp.int32)
-            nv = jnp.minimum(nv, nv + acc)  # depends on the carry: not hoistable
-            row, found = neighbors.lex_search(cc.i, cc.j, nv, cc.i, cc.j)
-            return jnp.maximum(row[0], 0), row
+            cc = cc._replace(shear=cc.shear + acc)  # depends on the carry: not hoistable
+            shear = neighbors._carry_history(cc, cc.i, cc.j, cc.valid, n)
+            return shear[0, 0], shear
 
-        rec_loop("loop.build.history_search", history, (jnp.zeros((), jnp.int32), c.i), c, lb, r_build,
-                 "binary search of the old (i, j) rows for the tangential history")
+        rec_loop("loop.build.history_search", history, (jnp.zeros((), dtype), c.shear), c, lb,
+                 r_build, "each new pair scans the old rows of its particle i for the tangential history")
         parts = [out.get(k, {}).get("best_ms") for k in
                  ("loop.build", "loop.build.candidates", "loop.build.mask", "loop.build.history_search")]
         if None not in parts:
@@ -560,7 +559,8 @@ def profile_case(state, params, config, repeats, log=print, detail=True, loop_st
             out["loop.build.compact_and_order"] = dict(
                 best_ms=rest, median_ms=rest, repeats=0, compile_s=0.0, per_call_in_loop=True,
                 what="derived: build - candidates - mask - history_search (compaction of the "
-                     "candidate mask into the pair list, ordering, bookkeeping)")
+                     "candidate mask into the pair list through bit sets and binary searches, "
+                     "sort of the kept pairs, bookkeeping)")
             log(f"  profile {'loop.build.compact_and_order (derived)':38s} best {rest:9.3f} ms")
     except Exception as exc:
         log(f"  build breakdown skipped ({type(exc).__name__}: {exc})")
