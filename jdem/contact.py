@@ -176,10 +176,17 @@ def contact_forces(contacts: Contacts, particles: Particles, params: Params, con
     # torques a_i n x F_i on i and (-a_j n) x (-F_i) on j: with n x n = 0 both are
     # multiples of n x shear
     n_cross_shear = cross_r_f(normal, shear)
-    # rows not touching carry exactly zero force and are left out of the sums
-    add = lambda rows, index: segment_add(rows, index, n, where=touching)
-    force = add(force_i, i) - add(force_i, j)
-    torque = add(scale(a_i, n_cross_shear), i) + add(scale(a_j, n_cross_shear), j)
+    as_list = lambda v: list(v) if isinstance(v, tuple) else [v]  # noqa: E731 (2D: scalar)
+    # one scatter per side of (C, d + torque components) rows: fewer, wider
+    # scatters than one per component (a tenth of the 3D step); rows not touching
+    # carry exactly zero force and are left out of the sums
+    add = lambda rows, index: segment_add(rows, index, n, where=touching)  # noqa: E731
+    rows_i = jnp.stack(list(force_i) + as_list(scale(a_i, n_cross_shear)), axis=1)
+    rows_j = jnp.stack([-f for f in force_i] + as_list(scale(a_j, n_cross_shear)), axis=1)
+    total = add(rows_i, i) + add(rows_j, j)
+    d = len(force_i)
+    force = total[:, :d]
+    torque = total[:, d:] if total.shape[1] > d + 1 else total[:, d]
     ones = touching.astype(jnp.int32)
     count = add(ones, i) + add(ones, j)
     return contacts._replace(shear=jnp.stack(shear, axis=-1)), force, torque, count
