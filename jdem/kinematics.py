@@ -187,10 +187,14 @@ def computed_once(fn, always_true):
     Small problems (outputs below ``COMPUTED_ONCE_MIN_ROWS`` rows) call ``fn``
     directly: there the conditional's fixed cost per step outweighs the
     recomputation (a 1,047-disc UCS forward run took 2.76 s with it, 2.40 s
-    without).  The results are the same either way.
+    without).  So do other backends than the CPU: this works around XLA:CPU's
+    fusion, and on a GPU a conditional may wait for the host to read its
+    predicate (the GPU figures in the README were measured without it).  The
+    results are the same either way.
     """
     shapes = jax.eval_shape(fn)
-    if max(s.size for s in jax.tree_util.tree_leaves(shapes)) < COMPUTED_ONCE_MIN_ROWS:
+    if (jax.default_backend() != "cpu"
+            or max(s.size for s in jax.tree_util.tree_leaves(shapes)) < COMPUTED_ONCE_MIN_ROWS):
         return fn()
     zeros = lambda: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)  # noqa: E731
     return jax.lax.cond(always_true, fn, zeros)
