@@ -53,6 +53,17 @@ def _stencil(dim):
     return np.array(list(itertools.product((-1, 0, 1), repeat=dim)), dtype=np.int32)
 
 
+def _sort_pairs(major, minor, major_max, n_minor):
+    """Integer pairs sorted by (major, minor): major in [0, major_max], minor in
+    [0, n_minor).  Through one int32 key major * n_minor + minor when it fits:
+    sorting a single array is ~4x faster on XLA:CPU than a two-key sort or a
+    stable argsort."""
+    if (major_max + 1) * n_minor < 2**31:
+        key = jnp.sort(major * n_minor + minor)
+        return key // n_minor, key % n_minor
+    return jax.lax.sort((major, minor), num_keys=2)
+
+
 def _cell_table(particles: Particles, config: Config):
     """Particles sorted into cells: table (n_cells + 1, K) of particle ids, N = empty.
 
@@ -62,14 +73,7 @@ def _cell_table(particles: Particles, config: Config):
     k = config.max_per_cell
     coords = _cell_coords(particles.pos, config)
     cell = jnp.where(particles.valid, _ravel(coords, config), config.n_cells)
-    if (config.n_cells + 1) * n < 2**31:
-        # particles ordered by (cell, index) through one int32 key: sorting a single
-        # array is ~4x faster on XLA:CPU than the equivalent stable argsort
-        key = jnp.sort(cell * n + jnp.arange(n, dtype=jnp.int32))
-        order, sorted_cell = key % n, key // n
-    else:
-        order = jnp.argsort(cell, stable=True)
-        sorted_cell = cell[order]
+    sorted_cell, order = _sort_pairs(cell, jnp.arange(n, dtype=jnp.int32), config.n_cells, n)
     first = jnp.searchsorted(sorted_cell, sorted_cell, side="left")
     rank = jnp.arange(n, dtype=jnp.int32) - first.astype(jnp.int32)
     in_grid = sorted_cell < config.n_cells
@@ -187,13 +191,10 @@ def _compact(mask, cand, cap, max_per_cell):
         seen = seen + bit
     valid = slot < count
     new_j = cand.reshape(-1)[at * w + bit_at].astype(jnp.int32)
-    # order each row by partner: the list (and the order in which a particle's
-    # contact forces are summed) then does not depend on the grid
-    if n * n < 2**31:  # one int32 key per pair; empty slots sort last
-        key = jnp.sort(jnp.where(valid, row * n + new_j, jnp.iinfo(jnp.int32).max))
-        row, new_j = key // n, key % n
-    else:
-        row, new_j = jax.lax.sort((jnp.where(valid, row, n), new_j), num_keys=2)
+    # order each row by partner (empty slots, as row n, last): the list, and the
+    # order in which a particle's contact forces are summed, then do not depend on
+    # the grid
+    row, new_j = _sort_pairs(jnp.where(valid, row, n), new_j, n, n)
     return jnp.where(valid, row, 0), jnp.where(valid, new_j, 0), valid, count
 
 
