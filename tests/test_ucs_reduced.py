@@ -1,0 +1,67 @@
+"""The reduced UCS study of 002 §2 (issue: "a reduced version, a few thousand
+discs, runs in the test suite"): one ~2,200-disc specimen (1.8 cm x 3.6 cm, the
+seed's radii and material, N-bar 5), kappa = 0, 0.3 %, 2.4 % as one batched run.
+
+Runtime: ~20 s to generate, ~2 min to load on this project's 2-core CPU
+(22,000 steps x 3 members at most; the run stops once every member has
+softened below 60 % of its peak).  Its own file, so that ``--dist loadfile``
+can give it a worker of its own.
+
+The platen step (3 nm on 3.6 cm, 8.3e-8 strain per step) is a slower strain
+rate than the one of tests/test_labtests.py (1.5 nm on 1.4 cm, 1.1e-7).
+"""
+import numpy as np
+import pytest
+
+from jdem import labtests as lt
+from jdem.specimen import generate
+
+SIZE = (0.018, 0.036)            # [m] width x height
+RADII = (0.2e-3, 0.35e-3)        # [m] (the seed: 0.228-0.422 mm)
+KAPPAS = (0.0, 3e-3, 2.4e-2)
+STEP = 3e-9                      # [m] platen step
+
+
+@pytest.fixture(scope="module")
+def study():
+    spec = generate("rectangle", SIZE, *RADII, seed=2, target_coordination=5.0)
+    hist, state, _ = lt.ucs_test(spec, lt.rock_params(2, kappa=list(KAPPAS)), platen_step=STEP,
+                                 max_strain=2e-3, stop_stress_ratio=0.6)
+    return spec, hist, state, lt.peak_summary(hist)
+
+
+def test_reduced_study_peaks_soften_and_trend_with_kappa(study):
+    """Every curve peaks inside the run and softens below 70 % of its peak; the
+    peak stress and the critical strain rise with kappa across {0, 0.3 %, 2.4 %};
+    the fracture degree at the peak and at the end falls (002 §2.2-2.3)."""
+    spec, hist, state, s = study
+    n = int(np.sum(np.asarray(spec.particles.valid)))
+    print(f"{n} discs, steps {np.asarray(state.step)}, peak MPa "
+          f"{np.round(s['peak_stress'] / 1e6, 2)}, critical strain {s['critical_strain']}, "
+          f"fracture degree at peak {s['fracture_degree_at_peak']}, "
+          f"at end {s['fracture_degree_end']}")
+    assert 2000 <= n <= 3000
+    assert abs(spec.coordination - 5.0) <= 0.15
+    for b in range(len(KAPPAS)):
+        stress = hist["axial_stress"][b]
+        k = int(s["peak_index"][b])
+        assert 5 < k < len(stress) - 5
+        assert stress[-1] < 0.7 * s["peak_stress"][b]
+        assert hist["fracture_degree"][b, -1] > hist["fracture_degree"][b, k]
+    assert np.all(np.diff(s["peak_stress"]) > 0)
+    assert np.all(np.diff(s["critical_strain"]) > 0)
+    assert np.all(np.diff(s["fracture_degree_at_peak"]) < 0)
+    assert np.all(np.diff(s["fracture_degree_end"]) < 0)
+
+
+def test_reduced_study_breaks_are_counted_by_mode(study):
+    """Broken bonds = tension + shear breaks in every record, never decreasing;
+    the failure pattern of the final state draws each broken bond once, with both
+    modes present (measured on this packing, kappa = 0: 37 % tension of 1,610)."""
+    _, hist, state, _ = study
+    np.testing.assert_array_equal(hist["n_broken"], hist["n_tension"] + hist["n_shear"])
+    assert np.all(np.diff(hist["n_broken"], axis=1) >= 0)
+    fp = lt.failure_pattern(lt.member(state, 0))
+    assert len(fp["index"]) == hist["n_broken"][0, -1]
+    assert set(np.unique(fp["mode"]).tolist()) == {1, 2}
+    assert np.sum(fp["mode"] == 1) == hist["n_tension"][0, -1]
