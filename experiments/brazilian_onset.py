@@ -1,0 +1,132 @@
+#!/usr/bin/env python
+"""Which bonds of a Brazilian disc are nearest to breaking just before the first break?
+
+    python experiments/brazilian_onset.py                       # the suite's disc, D = 12 mm
+    python experiments/brazilian_onset.py --diameter 0.02 --out results/brazilian_onset_20mm
+
+The test suite's Brazilian disc (D = 12 mm, r in [0.2, 0.35] mm, N-bar 5,
+T0 = 3 MPa, c0 = 10 MPa, kappa = 0, flat rigid platens, 1.5 nm per step) breaks
+first along the loaded diameter but mostly away from the centre
+(``tests/test_labtests.py::test_brazilian_failure_starts_at_the_centre``, a strict
+xfail).  This study runs the test once to find the step of the first break,
+runs it again to ``--fraction`` of that step (no bond broken yet), and tabulates
+the tensile force of the intact bonds against where they sit:
+
+* in the band |x - x_c| < 0.2 R around the loaded diameter, the bonds within
+  30 deg of horizontal (the ones the splitting tension pulls), by |y - y_c| / R:
+  mean, standard deviation and largest tensile normal force;
+* every bond, by distance from the centre r / R: the mean, 99th percentile and
+  largest tensile utilisation F_n / (T0 A), A = 2 min(r_i, r_j) x 1 m (the
+  linked bar's area, 002 eq 1), which is 1 where a bond yields in tension.
+
+Writes ``brazilian_onset.json`` and ``brazilian_onset.md`` under ``--out``.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import pathlib
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+import numpy as np  # noqa: E402
+
+from jdem import labtests as lt  # noqa: E402
+from jdem.specimen import generate  # noqa: E402
+
+RADII = (0.2e-3, 0.35e-3)   # [m], as in tests/test_labtests.py
+N_BAR = 5.0
+STEP = 1.5e-9               # [m per step]
+T0 = 3e6                    # rock_params' default tensile strength [Pa]
+BINS = ((0.0, 0.2), (0.2, 0.4), (0.4, 0.6), (0.6, 0.8), (0.8, 1.01))
+
+
+def bond_table(state, centre, big_r):
+    """Tensile force of the intact bonds by position (see the module docstring)."""
+    b, p = state.bonds, state.particles
+    keep = np.asarray(b.valid) & ~np.asarray(b.broken)
+    i, j = np.asarray(b.i)[keep], np.asarray(b.j)[keep]
+    x, rad = np.asarray(p.pos), np.asarray(p.radius)
+    d = x[j] - x[i]
+    n = d / np.linalg.norm(d, axis=1)[:, None]
+    rel = x[i] + n * rad[i, None] - centre            # contact point from the centre
+    tension = -np.asarray(b.normal_force)[keep]       # normal_force > 0 is compression
+    util = tension / (T0 * 2.0 * np.minimum(rad[i], rad[j]))
+    along = (np.abs(rel[:, 0]) < 0.2 * big_r) & (np.abs(n[:, 0]) > np.cos(np.deg2rad(30.0)))
+    y = np.abs(rel[:, 1]) / big_r
+    r = np.linalg.norm(rel, axis=1) / big_r
+    rows_d, rows_r = [], []
+    for lo, hi in BINS:
+        m = along & (y >= lo) & (y < hi)
+        rows_d.append(dict(lo=lo, hi=min(hi, 1.0), n=int(m.sum()),
+                           mean=float(tension[m].mean()) if m.any() else None,
+                           std=float(tension[m].std()) if m.any() else None,
+                           max=float(tension[m].max()) if m.any() else None))
+        m = (r >= lo) & (r < hi)
+        rows_r.append(dict(lo=lo, hi=min(hi, 1.0), n=int(m.sum()),
+                           mean=float(util[m].mean()) if m.any() else None,
+                           p99=float(np.percentile(util[m], 99)) if m.any() else None,
+                           max=float(util[m].max()) if m.any() else None))
+    return rows_d, rows_r
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--diameter", type=float, default=0.012)
+    ap.add_argument("--seed", type=int, default=2)
+    ap.add_argument("--fraction", type=float, default=0.8,
+                    help="load to this fraction of the first break's step")
+    ap.add_argument("--out", default="results/brazilian_onset")
+    a = ap.parse_args(argv)
+    out = pathlib.Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    disc = generate("disc", a.diameter, *RADII, seed=a.seed, target_coordination=N_BAR)
+    params = lt.rock_params(2, kappa=0.0, c0=10e6)
+    big_r = float(disc.info["radius"])
+    centre = np.asarray(disc.info["centre"])
+    hist, state, _ = lt.brazilian_test(disc, params, platen_step=STEP, max_strain=0.004)
+    fp = lt.failure_pattern(state)
+    if len(fp["index"]) == 0:
+        raise SystemExit("no bond broke: raise the platen travel")
+    first = lt.first_breaks(fp)
+    r_first = np.linalg.norm(fp["point"][first] - centre, axis=1) / big_r
+    step1 = int(np.min(fp["step"]))
+    load = np.asarray(hist["load"])
+    pre_strain = a.fraction * step1 * STEP / (2.0 * big_r)
+    hist2, pre, _ = lt.brazilian_test(disc, params, platen_step=STEP, max_strain=pre_strain,
+                                      stop_stress_ratio=None)
+    n_broken = int(np.sum(np.asarray(pre.bonds.broken) & np.asarray(pre.bonds.valid)))
+    rows_d, rows_r = bond_table(pre, centre, big_r)
+    info = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="minutes"),
+                diameter=a.diameter, seed=a.seed,
+                discs=int(np.sum(np.asarray(disc.particles.valid))), first_break_step=step1,
+                first_tenth_r_over_R=np.sort(r_first).tolist(),
+                pre_state_step=int(pre.step), pre_load_over_peak=float(hist2["load"][-1] / load.max()),
+                pre_broken=n_broken, diameter_band=rows_d, by_radius=rows_r,
+                wall_s=time.perf_counter() - t0)
+    (out / "brazilian_onset.json").write_text(json.dumps(info, indent=1))
+    fmt = lambda v, f: "" if v is None else format(v, f)
+    text = (f"# Brazilian disc just before the first break\n\n"
+            f"`python experiments/brazilian_onset.py --diameter {a.diameter} --fraction {a.fraction}` "
+            f"({info['date']}, {info['wall_s']:.0f} s): {info['discs']} discs; the first bond "
+            f"breaks at step {step1}; the first tenth of the breaks lie at r / R = "
+            f"{', '.join(f'{v:.2f}' for v in np.sort(r_first))}.  State at step {int(pre.step)} "
+            f"(load {info['pre_load_over_peak']:.0%} of the peak, {n_broken} bonds broken):\n\n"
+            "Bonds within 30 deg of horizontal in the band |x - x_c| < 0.2 R, tensile F_n [N]:\n\n"
+            "| \\|y\\| / R | bonds | mean | std | max |\n|---|---|---|---|---|\n"
+            + "".join(f"| {r['lo']:.1f}-{r['hi']:.1f} | {r['n']} | {fmt(r['mean'], '.0f')} | "
+                      f"{fmt(r['std'], '.0f')} | {fmt(r['max'], '.0f')} |\n" for r in rows_d)
+            + "\nEvery intact bond, tensile utilisation F_n / (T0 A):\n\n"
+            "| r / R | bonds | mean | 99th percentile | max |\n|---|---|---|---|---|\n"
+            + "".join(f"| {r['lo']:.1f}-{r['hi']:.1f} | {r['n']} | {fmt(r['mean'], '.3f')} | "
+                      f"{fmt(r['p99'], '.3f')} | {fmt(r['max'], '.3f')} |\n" for r in rows_r))
+    (out / "brazilian_onset.md").write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
