@@ -19,7 +19,11 @@ the tensile force of the intact bonds against where they sit:
   largest tensile utilisation F_n / (T0 A), A = 2 min(r_i, r_j) x 1 m (the
   linked bar's area, 002 eq 1), which is 1 where a bond yields in tension.
 
-Writes ``brazilian_onset.json`` and ``brazilian_onset.md`` under ``--out``.
+Writes under ``--out``: ``brazilian_onset.png`` (the intact bonds coloured by
+their tensile utilisation just before the first break, the first tenth of the
+breaks ringed), ``brazilian_onset.h5`` (per bond: contact point, utilisation;
+the first breaks; reopen with ``h5py``), ``brazilian_onset.json`` and ``.md``
+(the tables).
 """
 from __future__ import annotations
 
@@ -32,6 +36,11 @@ import time
 import jax
 
 jax.config.update("jax_enable_x64", True)
+import h5py  # noqa: E402
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jdem import labtests as lt  # noqa: E402
@@ -45,7 +54,9 @@ BINS = ((0.0, 0.2), (0.2, 0.4), (0.4, 0.6), (0.6, 0.8), (0.8, 1.01))
 
 
 def bond_table(state, centre, big_r):
-    """Tensile force of the intact bonds by position (see the module docstring)."""
+    """Tensile force of the intact bonds by position (see the module docstring).
+    Returns the two tables and, per intact bond, its contact point relative to
+    the centre (K, 2) [m] and its utilisation (K,)."""
     b, p = state.bonds, state.particles
     keep = np.asarray(b.valid) & ~np.asarray(b.broken)
     i, j = np.asarray(b.i)[keep], np.asarray(b.j)[keep]
@@ -70,7 +81,7 @@ def bond_table(state, centre, big_r):
                            mean=float(util[m].mean()) if m.any() else None,
                            p99=float(np.percentile(util[m], 99)) if m.any() else None,
                            max=float(util[m].max()) if m.any() else None))
-    return rows_d, rows_r
+    return rows_d, rows_r, rel, util
 
 
 def main(argv=None):
@@ -100,7 +111,7 @@ def main(argv=None):
     hist2, pre, _ = lt.brazilian_test(disc, params, platen_step=STEP, max_strain=pre_strain,
                                       stop_stress_ratio=None)
     n_broken = int(np.sum(np.asarray(pre.bonds.broken) & np.asarray(pre.bonds.valid)))
-    rows_d, rows_r = bond_table(pre, centre, big_r)
+    rows_d, rows_r, points, util = bond_table(pre, centre, big_r)
     info = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="minutes"),
                 diameter=a.diameter, seed=a.seed,
                 discs=int(np.sum(np.asarray(disc.particles.valid))), first_break_step=step1,
@@ -109,6 +120,30 @@ def main(argv=None):
                 pre_broken=n_broken, diameter_band=rows_d, by_radius=rows_r,
                 wall_s=time.perf_counter() - t0)
     (out / "brazilian_onset.json").write_text(json.dumps(info, indent=1))
+    first_points = fp["point"][first] - centre
+    with h5py.File(out / "brazilian_onset.h5", "w") as f:
+        f["bond_point"], f["bond_utilisation"] = points, util
+        f["first_break_point"] = first_points
+        f["load"], f["axial_strain"] = load, np.asarray(hist["axial_strain"])
+        f.attrs.update({k: v for k, v in info.items() if isinstance(v, (int, float, str))})
+    fig, ax = plt.subplots(figsize=(5.5, 5))
+    order = np.argsort(util)
+    sc = ax.scatter(points[order, 0] / big_r, points[order, 1] / big_r, c=util[order], s=8,
+                    cmap="coolwarm", vmin=-1, vmax=1)
+    ax.scatter(first_points[:, 0] / big_r, first_points[:, 1] / big_r, s=70, facecolors="none",
+               edgecolors="k", label="first tenth of the breaks")
+    ax.add_patch(plt.Circle((0, 0), 1.0, fill=False, color="0.5"))
+    ax.add_patch(plt.Circle((0, 0), 0.4, fill=False, color="0.5", ls="--"))
+    fig.colorbar(sc, ax=ax, label="F_n / (T0 A), tension > 0")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x / R")
+    ax.set_ylabel("y / R (load along y)")
+    ax.set_title(f"D = {a.diameter * 1e3:g} mm at {info['pre_load_over_peak']:.0%} of the peak load",
+                 fontsize=9)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(out / "brazilian_onset.png", dpi=120)
+    plt.close(fig)
     fmt = lambda v, f: "" if v is None else format(v, f)
     text = (f"# Brazilian disc just before the first break\n\n"
             f"`python experiments/brazilian_onset.py --diameter {a.diameter} --fraction {a.fraction}` "

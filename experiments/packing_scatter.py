@@ -20,8 +20,9 @@ the peak and the slope of the curve over four windows of the pre-peak curve
 ``ucs_model``, 5 nm per step and an 8-record ramp); a slower step shows how much
 of the curve is the loading rate.
 
-Writes ``packing_scatter.json`` (every figure and the curves) and
-``packing_scatter.md`` (the table) under ``--out``.
+Writes under ``--out``: ``packing_scatter.png`` (the curves), ``packing_scatter.h5``
+(the curves and the per-packing figures; reopen with ``h5py``),
+``packing_scatter.json`` (the same as text) and ``packing_scatter.md`` (the table).
 """
 from __future__ import annotations
 
@@ -34,7 +35,12 @@ import time
 import jax
 
 jax.config.update("jax_enable_x64", True)
+import h5py  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jdem import calibrate, difflab, labtests  # noqa: E402
@@ -107,6 +113,26 @@ def main(argv=None):
                 true=TRUE, generation_s=t_gen, run_s=t_run, rows=rows, rel_std=summary,
                 strain=np.asarray(curve["strain"]).tolist(), stress=np.asarray(curve["stress"]).tolist())
     (out / "packing_scatter.json").write_text(json.dumps(info, indent=1))
+    with h5py.File(out / "packing_scatter.h5", "w") as f:
+        f["strain"], f["stress"] = np.asarray(curve["strain"]), np.asarray(curve["stress"])
+        for key in ("seed", "discs", "coordination", "porosity", "peak_stress", "peak_strain",
+                    "slopes", "final_over_peak"):
+            f[key] = np.asarray([r[key] for r in rows])
+        f["slope_windows"] = np.asarray(WINDOWS)
+        f.attrs.update({k: v for k, v in info.items() if isinstance(v, (int, float, str))})
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for m in range(a.packings):
+        ax.plot(np.asarray(curve["strain"][m]) * 100, np.asarray(curve["stress"][m]) / 1e6,
+                lw=1, label=f"seed {m}")
+    ax.set_xlabel("axial strain [%]")
+    ax.set_ylabel("axial stress [MPa]")
+    ax.set_title(f"{a.packings} packings, {a.size[0] * 1e3:g} x {a.size[1] * 1e3:g} mm, "
+                 f"platen step {a.platen_step:g} m", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(out / "packing_scatter.png", dpi=120)
+    plt.close(fig)
 
     head = (f"# Packing scatter of the differentiable UCS test\n\n"
             f"`python experiments/packing_scatter.py --size {a.size[0]} {a.size[1]} "

@@ -28,6 +28,22 @@ light mass-proportional damping tuned to the specimen's lowest axial mode.  Both
 are smooth; with the velocity ramp the curve matches finite differences to
 <1 % up to the peak (tests/test_calibrate.py).
 
+Loading rate
+------------
+The default platen step (5 nm per step; with the time step of the 4 mm x 8 mm
+test specimens, 1.27e-8 s, a strain rate of ~50 /s) suits fitting curves made
+with the same set-up, but the curve depends on it: over 8 packings of ~100 and
+~330 discs the peak stress at 1.25 nm per step (a 40-record ramp) is 21-44 % and
+15-35 % lower than at 5 nm, and at 0.625 nm (~100 discs) a further 7-19 % lower:
+the peak is not yet independent of the rate there (``python
+experiments/packing_scatter.py``, results in experiments/results/packing_scatter/).
+The pre-peak slope over 20-40 % of the peak changes by at most 3 % between 1.25
+and 0.625 nm for 7 of the 8 packings (9 % for the eighth); at 5 nm it is still
+shaped by the waves of the platen's start (7.7-15.5 GPa against 8.7-21.9 GPa at
+1.25 nm).  To calibrate against a laboratory curve, use a slower
+``platen_step`` and longer ``ramp_records``, and check how far the fitted values
+move when ``platen_step`` is halved again.
+
 Non-smooth events of the bond model (002 eq 6-11) are kept exact:
 
 * yield (tension cut-off, Mohr-Coulomb) is a return mapping, piecewise smooth;

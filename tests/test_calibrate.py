@@ -216,8 +216,9 @@ def test_calibration_recovers_fracture_strain(tmp_path):
 @pytest.mark.xfail(strict=True, reason="not met: from 30-50 % off, E, strength and kappa "
                    "stall on a plateau of the loss (0.007-0.012) that reaches to within ~10 % "
                    "of the truth, even on the target's own packing; and packings of the same "
-                   "statistics differ by 11 % (~100 discs) / 8.7 % (~300 discs) std in peak "
-                   "stress, more than the 5 % strength tolerance")
+                   "statistics differ by 15 % (~100 discs) / 11 % (~330 discs) std in peak "
+                   "stress, more than the 5 % strength tolerance "
+                   "(experiments/results/packing_scatter/)")
 def test_recovery_three_parameters_on_a_different_packing():
     """The issue's recovery check: target on packing 2, calibration on packing 3
     from E +40 %, strength -35 %, kappa +50 %: E within 3 %, strength within 5 %,
@@ -229,9 +230,12 @@ def test_recovery_three_parameters_on_a_different_packing():
     0.0075-0.0124 (the curve's event noise, RMS ~9 % of the peak) and the pathwise
     directional derivative changes sign five times; the loss only drops below 0.005
     within ~10 % of the truth.  Between packings, the peak stress with the true
-    parameters scatters by 11 % std over 6 packings of ~100 discs and 8.7 % over 8 of
-    ~300 discs, so a fit on another packing (or an ensemble) lands that far from the
-    target packing's strength."""
+    parameters scatters by 14.9 % std over 8 packings of ~100 discs and 11.2 % over 8
+    of ~330 discs, the slope of the pre-peak curve by 12-65 % depending on the window
+    (``python experiments/packing_scatter.py [--size 0.007 0.014]``); at a 4x slower
+    platen the peak scatter is 23.3 % and 16.3 %.  A fit on another packing (or an
+    ensemble) therefore lands about that far from the target packing's strength and
+    modulus, and the 5 % / 3 % tolerances are met only by chance."""
     params0 = lt.rock_params(2, kappa=3e-3)
     model, params = difflab.ucs_model(specimen(3), params0, max_strain=MAX_STRAIN)
     start = dict(E=1.4 * TRUE["E"], strength=0.65 * TRUE["strength"], kappa=1.5 * TRUE["kappa"])
