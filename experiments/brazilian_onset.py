@@ -49,23 +49,19 @@ from jdem.specimen import generate  # noqa: E402
 RADII = (0.2e-3, 0.35e-3)   # [m], as in tests/test_labtests.py
 N_BAR = 5.0
 STEP = 1.5e-9               # [m per step]
-T0 = 3e6                    # rock_params' default tensile strength [Pa]
 BINS = ((0.0, 0.2), (0.2, 0.4), (0.4, 0.6), (0.6, 0.8), (0.8, 1.01))
 
 
-def bond_table(state, centre, big_r):
+def bond_table(state, centre, big_r, tensile_strength):
     """Tensile force of the intact bonds by position (see the module docstring).
     Returns the two tables and, per intact bond, its contact point relative to
     the centre (K, 2) [m] and its utilisation (K,)."""
-    b, p = state.bonds, state.particles
+    point, n, half = lt._bond_points(state)   # the points failure_pattern uses
+    b = state.bonds
     keep = np.asarray(b.valid) & ~np.asarray(b.broken)
-    i, j = np.asarray(b.i)[keep], np.asarray(b.j)[keep]
-    x, rad = np.asarray(p.pos), np.asarray(p.radius)
-    d = x[j] - x[i]
-    n = d / np.linalg.norm(d, axis=1)[:, None]
-    rel = x[i] + n * rad[i, None] - centre            # contact point from the centre
+    rel, n = point[keep] - centre, n[keep]
     tension = -np.asarray(b.normal_force)[keep]       # normal_force > 0 is compression
-    util = tension / (T0 * 2.0 * np.minimum(rad[i], rad[j]))
+    util = tension / (tensile_strength * 2.0 * half[keep])
     along = (np.abs(rel[:, 0]) < 0.2 * big_r) & (np.abs(n[:, 0]) > np.cos(np.deg2rad(30.0)))
     y = np.abs(rel[:, 1]) / big_r
     r = np.linalg.norm(rel, axis=1) / big_r
@@ -111,7 +107,8 @@ def main(argv=None):
     hist2, pre, _ = lt.brazilian_test(disc, params, platen_step=STEP, max_strain=pre_strain,
                                       stop_stress_ratio=None)
     n_broken = int(np.sum(np.asarray(pre.bonds.broken) & np.asarray(pre.bonds.valid)))
-    rows_d, rows_r, points, util = bond_table(pre, centre, big_r)
+    rows_d, rows_r, points, util = bond_table(pre, centre, big_r,
+                                              float(params.bond_tensile))
     info = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="minutes"),
                 diameter=a.diameter, seed=a.seed,
                 discs=int(np.sum(np.asarray(disc.particles.valid))), first_break_step=step1,
