@@ -522,7 +522,7 @@ def profile_case(state, params, config, repeats, log=print, detail=True, loop_st
         return rec_loop(name, body, init, k, iters, r_build, desc)
 
     try:
-        cand, _ = jax.jit(lambda p: neighbors._candidates(p, config))(p)
+        cand, _ = jax.jit(lambda p: neighbors.candidates(p, config))(p)
 
         def cand_mask(p, cand):
             pos_pad = jnp.concatenate([p.pos, jnp.zeros_like(p.pos[:1])])
@@ -537,9 +537,9 @@ def profile_case(state, params, config, repeats, log=print, detail=True, loop_st
         out["build_candidates_shape"] = list(cand.shape)
         out["build_candidates_filled"] = float(jnp.mean(cand < n))
         out["build_candidates_kept"] = int(jnp.sum(mask))
-        rec_part("loop.build.cell_table", lambda pp, k: neighbors._cell_table(pp, config), 0,
+        rec_part("loop.build.cell_table", lambda pp, k: neighbors.cell_table(pp, config), 0,
                  "sort particles into cells (one int32 key), fill the (cells, K) table")
-        rec_part("loop.build.candidates", lambda pp, k: neighbors._candidates(pp, config), 0,
+        rec_part("loop.build.candidates", lambda pp, k: neighbors.candidates(pp, config), 0,
                  "cell table + (N, 3^d K) candidate gather (includes cell_table)")
         rec_part("loop.build.mask", lambda pp, k: cand_mask(pp, k), cand,
                  "distance test of every candidate (gather of candidate positions and radii)")
@@ -547,7 +547,7 @@ def profile_case(state, params, config, repeats, log=print, detail=True, loop_st
         def history(x, cc):
             acc, prev = x
             cc = cc._replace(shear=cc.shear + acc)  # depends on the carry: not hoistable
-            shear = neighbors._carry_history(cc, cc.i, cc.j, cc.valid, n)
+            shear = neighbors.carry_history(cc, cc.i, cc.j, cc.valid, n)
             return shear[0, 0], shear
 
         rec_loop("loop.build.history_search", history, (jnp.zeros((), dtype), c.shear), c, lb,

@@ -15,10 +15,14 @@ elastic bonds (strengths 1 GPa, so that nothing yields).  At rest,
 Different N-bar come from ``jdem.specimen.specimen_for_coordination`` (the
 packing's density and the bonding gap tolerance; the seed varied particle
 number, radius, arrangement, size spread and embedding), here for two radius
-spreads.  ``jdem.labtests.coordination_energy_ratio`` gives lambda for the
+spreads.  ``jdem.lab.energy.coordination_energy_ratio`` gives lambda for the
 whole block and ``lambda_core`` for the bulk only (bonds farther than 0.2 H
 from the platens): a random packing touches a flat platen at a few discs, and
 on a small block the seating of the others adds energy near the platens.
+
+Damping: the seed's local non-viscous damping, alpha = 0.8 (000 eq 3-19,
+``jdem.lab.local(0.8)``, 002 §1.4), passed explicitly (the lab tests' default
+is the smooth damping ``jdem.lab.smooth()``).
 
 Fits lambda = a N-bar^b (least squares in log-log) to both and compares with
 the seed's lambda = 60.5 N-bar^-2.54 (002 eq 17; lambda = 1 at N-bar = 5.04).
@@ -46,7 +50,9 @@ import numpy as np  # noqa: E402
 
 import jdem.io  # noqa: E402
 from jdem import InputError  # noqa: E402
-from jdem import labtests as lt  # noqa: E402
+from jdem import lab  # noqa: E402
+from jdem.lab.energy import coordination_energy_ratio  # noqa: E402
+from jdem.materials import rock_params  # noqa: E402
 from jdem.specimen import specimen_for_coordination  # noqa: E402
 
 SEED_A, SEED_B = 60.5, -2.54
@@ -55,6 +61,7 @@ FULL = dict(size=(0.10, 0.10), spreads=((0.6e-3, 0.85e-3), (0.45e-3, 1.0e-3)),
 SMALL = dict(size=(0.02, 0.02), spreads=((0.4e-3, 0.6e-3), (0.3e-3, 0.7e-3)),
              targets=(3.6, 4.0, 4.4, 4.8, 5.2, 5.6))
 STRESS = 1e6
+DAMPING = lab.local(0.8)    # the seed's local damping, not the lab default smooth()
 
 
 def power_fit(n_bar, lam):
@@ -78,7 +85,8 @@ def main(argv=None):
     out = pathlib.Path(args.out or ("results/coordination_study" + ("_small" if small else "")))
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
-    params = lt.rock_params(2, E=30e9, nu=0.3, T0=1e9, c0=1e9, kappa=1e-2, local_damping=0.8)
+    params = rock_params(2, E=30e9, nu=0.3, T0=1e9, c0=1e9, kappa=1e-2, local_damping=0.8)
+    print(f"  damping: {DAMPING}")
     rows, failed = [], []
     for s_i, (r_lo, r_hi) in enumerate(setup["spreads"]):
         for target in setup["targets"]:
@@ -91,7 +99,7 @@ def main(argv=None):
                 print(f"  r in [{r_lo * 1e3:g}, {r_hi * 1e3:g}] mm, target N-bar {target}: "
                       f"not reached ({e})")
                 continue
-            res = lt.coordination_energy_ratio(sp, params, stress=STRESS)
+            res = coordination_energy_ratio(sp, params, stress=STRESS, damping=DAMPING)
             row = dict(spread=s_i, r_min=r_lo, r_max=r_hi, target=target,
                        n_bar=float(sp.coordination), n_particles=res["n_particles"],
                        n_bonds=res["n_bonds"], porosity=float(sp.porosity),
@@ -140,7 +148,8 @@ def main(argv=None):
     fig.savefig(out / "lambda_vs_coordination.png", dpi=130)
     plt.close(fig)
 
-    summary = dict(small=small, size=list(setup["size"]), stress=STRESS, rows=rows,
+    summary = dict(small=small, size=list(setup["size"]), stress=STRESS,
+                   damping=str(DAMPING), rows=rows,
                    failed=failed, fit=dict(a=fit[0], b=fit[1], r=fit[2], lam_at_5=n5(fit)),
                    fit_core=dict(a=fit_core[0], b=fit_core[1], r=fit_core[2],
                                  lam_at_5=n5(fit_core)),
@@ -153,7 +162,7 @@ def main(argv=None):
     jdem.io.save_run(out / "coordination_study.h5", history=hist,
                      attrs={"what": "002 §1.4 lambda vs N-bar", "fit_a": fit[0], "fit_b": fit[1],
                             "fit_core_a": fit_core[0], "fit_core_b": fit_core[1],
-                            "wall_s": wall, "stress": STRESS})
+                            "wall_s": wall, "stress": STRESS, "damping": str(DAMPING)})
     print(f"\n  fit      lambda = {fit[0]:.3g} N^{fit[1]:.2f} (r = {fit[2]:.3f}); "
           f"lambda(5) = {n5(fit):.3f}")
     print(f"  bulk fit lambda = {fit_core[0]:.3g} N^{fit_core[1]:.2f} (r = {fit_core[2]:.3f}); "

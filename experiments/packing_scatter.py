@@ -3,22 +3,27 @@
 
     python experiments/packing_scatter.py                                  # ~100 discs, 8 packings
     python experiments/packing_scatter.py --size 0.007 0.014               # ~330 discs
-    python experiments/packing_scatter.py --platen-step 1.25e-9 --ramp-records 40
+    python experiments/packing_scatter.py --platen-step 1.25e-9 --ramp-transits 11
     python experiments/packing_scatter.py --out results/packing_scatter
 
 Calibration on one packing recovers the parameters of another packing only as
 closely as the two packings agree.  This study runs the calibration's UCS test
-(:func:`jdem.difflab.ucs_model`; the set-up of tests/test_calibrate.py: a 4 mm x
-8 mm rectangle, r in [0.2, 0.35] mm, N-bar 4.5, E = 30 GPa, T0 = c0 = 3 MPa,
-kappa = 0.3 %) with the same parameters on ``--packings`` packings (seeds 0, 1,
-...) as one vmapped call, and reports per packing the peak stress, the strain at
+(:data:`jdem.lab.UCS` with ``stiffness_margin=2`` and the lab tests' default
+smooth damping, run as the pure :func:`jdem.lab.checked_curve`; the set-up of
+tests/test_calibrate.py: a 4 mm x 8 mm rectangle, r in [0.2, 0.35] mm, N-bar
+4.5, E = 30 GPa, T0 = c0 = 3 MPa, kappa = 0.3 %) with the same parameters on
+``--packings`` packings (seeds 0, 1, ...) as one vmapped call, a record every
+50 steps, and reports per packing the peak stress, the strain at
 the peak and the slope of the curve over four windows of the pre-peak curve
 (5-20, 20-40, 40-60, 60-80 % of the peak; the calibration's modulus term uses
 10-40 %), with their relative standard deviation over the packings.
 
-``--platen-step`` and ``--ramp-records`` set the loading (defaults: those of
-``ucs_model``, 5 nm per step and an 8-record ramp); a slower step shows how much
-of the curve is the loading rate.
+``--platen-step`` and ``--ramp-transits`` set the loading (defaults: 5 nm per
+step and a ramp of 2.2 wave transits through the specimen, about 8 records of
+50 steps on the default 4 mm x 8 mm specimen, where a transit takes ~180 steps:
+the set-up of the former differentiable test); a slower step shows how much of
+the curve is the loading rate.  ``--ramp-transits 11`` is about the former
+40-record ramp.
 
 Writes under ``--out``: ``packing_scatter.png`` (the curves), ``packing_scatter.h5``
 (the curves and the per-packing figures; reopen with ``h5py``),
@@ -42,11 +47,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jdem import calibrate, difflab, labtests  # noqa: E402
+from jdem import lab  # noqa: E402
+from jdem.materials import material, rock_params  # noqa: E402
 from jdem.specimen import generate  # noqa: E402
 
 TRUE = dict(E=30e9, strength=3e6, kappa=3e-3)
 WINDOWS = ((0.05, 0.2), (0.2, 0.4), (0.4, 0.6), (0.6, 0.8))
+RECORD_EVERY = 50      # steps per record (one point of the curve)
 
 
 def slopes(strain, stress):
@@ -73,7 +80,8 @@ def main(argv=None):
     ap.add_argument("--coordination", type=float, default=4.5)
     ap.add_argument("--packings", type=int, default=8)
     ap.add_argument("--platen-step", type=float, default=5e-9, help="[m per step]")
-    ap.add_argument("--ramp-records", type=int, default=8)
+    ap.add_argument("--ramp-transits", type=float, default=2.2,
+                    help="wave transits over which the platen speeds up")
     ap.add_argument("--max-strain", type=float, default=2.2e-3)
     ap.add_argument("--out", default="results/packing_scatter")
     a = ap.parse_args(argv)
@@ -84,12 +92,15 @@ def main(argv=None):
     specs = [generate("rectangle", tuple(a.size), *a.radii, seed=s,
                       target_coordination=a.coordination) for s in range(a.packings)]
     t_gen = time.perf_counter() - t0
-    model, params = difflab.ucs_model(specs, labtests.rock_params(2, kappa=TRUE["kappa"]),
-                                      platen_step=a.platen_step, max_strain=a.max_strain,
-                                      ramp_records=a.ramp_records)
+    setup = lab.UCS.setup(specs, rock_params(2, kappa=TRUE["kappa"]), platen_step=a.platen_step,
+                          max_strain=a.max_strain, ramp_transits=a.ramp_transits,
+                          record_every=RECORD_EVERY, stiffness_margin=2.0)
+    params = setup.params
+    print(f"{setup}, ramp {setup.plan.ramp_records} records", flush=True)
     t0 = time.perf_counter()   # one parameter set, broadcast to every packing
-    curve, model = difflab.checked_curve(calibrate.material(params, TRUE), model)
+    hist, setup = lab.checked_curve(setup, material(params, TRUE))
     t_run = time.perf_counter() - t0
+    curve = dict(strain=hist["axial_strain"], stress=hist["axial_stress"])
 
     rows = []
     for m, sp in enumerate(specs):
@@ -105,8 +116,10 @@ def main(argv=None):
                       for w, (lo, hi) in enumerate(WINDOWS)})
     info = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="minutes"),
                 size=list(a.size), radii=list(a.radii), coordination=a.coordination,
-                platen_step=a.platen_step, ramp_records=a.ramp_records, max_strain=a.max_strain,
-                dt=float(params.dt), steps=int(model.spec.n_records * model.spec.record_every),
+                platen_step=a.platen_step, ramp_transits=a.ramp_transits,
+                ramp_records=int(setup.plan.ramp_records), max_strain=a.max_strain,
+                damping=str(setup.plan.damping),
+                dt=float(params.dt), steps=int(setup.plan.n_records * setup.plan.record_every),
                 true=TRUE, generation_s=t_gen, run_s=t_run, rows=rows, rel_std=summary,
                 strain=np.asarray(curve["strain"]).tolist(), stress=np.asarray(curve["stress"]).tolist())
     (out / "packing_scatter.json").write_text(json.dumps(info, indent=1))
@@ -133,8 +146,9 @@ def main(argv=None):
 
     head = (f"# Packing scatter of the differentiable UCS test\n\n"
             f"`python experiments/packing_scatter.py --size {a.size[0]} {a.size[1]} "
-            f"--platen-step {a.platen_step} --ramp-records {a.ramp_records} --packings {a.packings}` "
-            f"({info['date']}; {info['steps']} steps of {info['dt']:.3g} s; generation "
+            f"--platen-step {a.platen_step} --ramp-transits {a.ramp_transits} --packings {a.packings}` "
+            f"({info['date']}; {info['steps']} steps of {info['dt']:.3g} s, ramp "
+            f"{info['ramp_records']} records, damping {info['damping']}; generation "
             f"{t_gen:.0f} s, run {t_run:.0f} s)\n\n"
             "| seed | discs | N-bar | peak MPa | peak strain 1e-6 | slope 5-20 % GPa | 20-40 % | "
             "40-60 % | 60-80 % |\n|---|---|---|---|---|---|---|---|---|\n")

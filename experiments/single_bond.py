@@ -37,19 +37,19 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jdem.io  # noqa: E402
-from jdem import labtests as lt  # noqa: E402
+from jdem.lab import single_bond as sb  # noqa: E402
 
 NORMAL_STRESS = 3e6
 
 
 def run_case(mode, dim, progress):
     t = time.perf_counter()
-    hist, state, config = lt.single_bond_test(mode, dim=dim, normal_stress=NORMAL_STRESS,
+    hist, state, config = sb.single_bond_test(mode, dim=dim, normal_stress=NORMAL_STRESS,
                                               progress=progress)
     wall = time.perf_counter() - t
     # the params actually run (seed values with the time step single_bond_test chose)
-    params = lt.single_bond_setup(mode, dim=dim, normal_stress=NORMAL_STRESS).params
-    summ = lt.single_bond_summary(hist, mode, params, NORMAL_STRESS)
+    params = sb.single_bond_setup(mode, dim=dim, normal_stress=NORMAL_STRESS).params
+    summ = sb.single_bond_summary(hist, mode, params, NORMAL_STRESS)
     return dict(hist=hist, state=state, config=config, params=params, summary=summ, wall=wall)
 
 
@@ -79,7 +79,7 @@ def report(mode, dim, case):
         sn = h["normal_stress"]
         print(f"  bond normal stress {sn.min() / 1e6:.5f} .. {sn.max() / 1e6:.5f} MPa "
               f"(applied {NORMAL_STRESS / 1e6:g} MPa vertically; the bond turns by ~gamma)")
-    ana = lt.analytic_single_bond_curve(mode, h["strain"], case["params"], NORMAL_STRESS)
+    ana = sb.analytic_single_bond_curve(mode, h["strain"], case["params"], NORMAL_STRESS)
     err = np.max(np.abs(h["stress"] - ana)) / s["expected_peak_stress"]
     print(f"  max |simulated - theory| over the curve: {100 * err:.4f} % of the peak")
 
@@ -91,7 +91,7 @@ def plot(mode, cases, out):
         c = cases[dim]
         h, s = c["hist"], c["summary"]
         x = 100 * h["strain"]
-        ana = lt.analytic_single_bond_curve(mode, h["strain"], c["params"], NORMAL_STRESS)
+        ana = sb.analytic_single_bond_curve(mode, h["strain"], c["params"], NORMAL_STRESS)
         ax.plot(x, ana / 1e6, "k-", lw=3, alpha=0.3, label="theory (002 eq 6-9)")
         ax.plot(x, h["stress"] / 1e6, "C0-", lw=1.2, label=f"jdem {dim}D")
         ax.plot(100 * s["strain_at_peak"], s["peak_stress"] / 1e6, "ro")
@@ -141,16 +141,16 @@ def main(argv=None):
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
-    results = {mode: {} for mode in lt.MODES}
+    results = {mode: {} for mode in sb.MODES}
     for dim in dims:
-        for mode in lt.MODES:
+        for mode in sb.MODES:
             results[mode][dim] = run_case(mode, dim, args.progress)
             report(mode, dim, results[mode][dim])
 
-    figs = [plot(mode, results[mode], out) for mode in lt.MODES]
+    figs = [plot(mode, results[mode], out) for mode in sb.MODES]
 
     history, attrs = {}, {"normal_stress": NORMAL_STRESS, "dims": ",".join(map(str, dims))}
-    for mode in lt.MODES:
+    for mode in sb.MODES:
         for dim, c in results[mode].items():
             tag = f"{mode}_{dim}d"
             for k, v in c["hist"].items():

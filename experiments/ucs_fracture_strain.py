@@ -12,7 +12,14 @@ kappa = eps_lim = gamma_lim in {0, 0.1, 0.3, 0.6, 1.2, 2.4} %.  Here the
 specimen comes from ``jdem.specimen.generate`` (densest packing, bonding gap
 chosen for N-bar = 5, the coordination at which 002 §1.4 finds lambda ~ 1; the
 seed's "63,252 contacts" for 13,097 discs is 4.83 per disc) and the six kappas
-run as ONE batched (vmapped) ``jdem.run`` through ``jdem.labtests.ucs_test``.
+run as ONE batched (vmapped) host run: ``jdem.lab.UCS.setup`` then
+``jdem.lab.run``.
+
+Damping: the seed's local non-viscous damping, alpha = 0.8 (000 eq 3-19,
+``jdem.lab.local(0.8)``), passed explicitly: the lab tests' default is the
+smooth damping ``jdem.lab.smooth()``, which is not what 002 §2.1 used.  The
+platen speeds up over the lab tests' default ramp (10 wave transits through the
+specimen, half a cosine) instead of starting at full speed.
 
 ``--small`` (explicit, for quick runs): a 1 cm x 2 cm specimen (~480 discs) of
 the same radii and a 2 nm platen step (``--platen-step`` to change it).  The
@@ -54,7 +61,9 @@ import numpy as np  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
 import jdem.io  # noqa: E402
-from jdem import labtests as lt  # noqa: E402
+from jdem import lab  # noqa: E402
+from jdem.batch import member  # noqa: E402
+from jdem.materials import rock_params  # noqa: E402
 from jdem.specimen import generate  # noqa: E402
 
 KAPPAS = (0.0, 1e-3, 3e-3, 6e-3, 1.2e-2, 2.4e-2)
@@ -72,6 +81,7 @@ MATERIAL = dict(E=30e9, nu=0.22, T0=3e6, c0=3e6, phi_deg=30.0, local_damping=0.8
 DENSITY = 2500.0
 N_BAR = 5.0
 STOP_RATIO = 0.25      # stop once every curve fell below 25 % of its peak
+DAMPING = lab.local(0.8)   # the seed's local damping (002 §2.1), not the lab default smooth()
 
 
 def _label(k):
@@ -166,7 +176,7 @@ def _panels(n, box):
 def plot_failure(state, kappas, box, path):
     fig, axes = _panels(len(kappas), box)
     for b, ax in enumerate(axes[0]):
-        fp = lt.failure_pattern(lt.member(state, b))
+        fp = lab.failure_pattern(member(state, b))
         for mode, color in ((1, "red"), (2, "black")):
             seg = fp["segment"][fp["mode"] == mode] * 100
             ax.add_collection(LineCollection(seg, colors=color, linewidths=0.9))
@@ -241,15 +251,18 @@ def main(argv=None):
     print(f"  {n_part} discs, {sp.info['n_bonds']} bonds, porosity {sp.porosity:.3f}, "
           f"N-bar {sp.coordination:.2f}  ({t_gen:.0f} s)")
 
-    params = lt.rock_params(2, kappa=list(KAPPAS), **MATERIAL)
+    params = rock_params(2, kappa=list(KAPPAS), **MATERIAL)
     t1 = time.time()
-    hist, state, config = lt.ucs_test(sp, params, platen_step=setup["platen_step"],
-                                      max_strain=setup["max_strain"],
-                                      record_every=setup["record_every"], progress=True,
-                                      stop_stress_ratio=STOP_RATIO, keep_peak_state=True)
+    test = lab.UCS.setup(sp, params, platen_step=setup["platen_step"],
+                         max_strain=setup["max_strain"], record_every=setup["record_every"],
+                         damping=DAMPING)
+    print(f"  {test}: the seed's local damping, not the lab default smooth()")
+    res = lab.run(test, progress=True, stop_stress_ratio=STOP_RATIO, keep_peak_state=True)
+    hist, state = res.history, res.state
+    config, params = res.setup.plan.config, res.setup.params   # the time step and damping run
     t_run = time.time() - t1
     steps = int(np.max(np.asarray(state.step)))
-    summary = lt.peak_summary(hist)
+    summary = lab.peak_summary(hist)
     print(f"  {steps} steps x {len(KAPPAS)} members in {t_run:.0f} s "
           f"({steps / t_run:.0f} batched steps/s)")
 
@@ -280,6 +293,7 @@ def main(argv=None):
     wall = time.time() - t_start
     info = dict(small=small, setup={k: list(v) if isinstance(v, tuple) else v
                                     for k, v in setup.items()},
+                damping=str(test.plan.damping), dt=float(np.max(np.asarray(params.dt))),
                 n_particles=n_part, n_bonds=int(sp.info["n_bonds"]), porosity=float(sp.porosity),
                 coordination=float(sp.coordination), steps=steps, members=len(KAPPAS),
                 generation_s=t_gen, run_s=t_run, wall_s=wall,
@@ -291,7 +305,8 @@ def main(argv=None):
     (out / "summary.json").write_text(json.dumps(info, indent=1))
     attrs = {"what": "002 §2 uniaxial compression vs fracture strain", "kappas": list(KAPPAS),
              "wall_s": wall, "run_s": t_run, "generation_s": t_gen, "n_particles": n_part,
-             "platen_step": setup["platen_step"], "full_estimate_s": est_full_s}
+             "platen_step": setup["platen_step"], "full_estimate_s": est_full_s,
+             "damping": str(test.plan.damping)}
     hist_out = dict(hist)
     for key, v in summary.items():
         hist_out[f"summary_{key}"] = np.asarray(v)

@@ -37,6 +37,7 @@ _cpu_fusion_flag()
 
 from jdem.state import (Bonds, Config, Contacts, Params, Particles, State, Walls,  # noqa: F401
                         empty_bonds, make_params, make_particles, make_walls, no_walls)
-from jdem.simulate import (RunResult, SimulationDiverged, advance, broadcast_batch,  # noqa: F401
+from jdem.simulate import (RunResult, SimulationDiverged, advance,  # noqa: F401
                            make_config, make_state, rollout, run)
+from jdem.batch import broadcast_batch, member  # noqa: F401
 from jdem.validate import InputError  # noqa: F401

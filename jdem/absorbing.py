@@ -59,6 +59,7 @@ from jdem.bond import bond_strain_energy, create_bonds
 from jdem.kinematics import dot
 from jdem.measure import kinetic_energy
 from jdem.simulate import make_state, rollout, run
+from jdem.specimen import generate, subset
 from jdem.state import Params, make_params, make_particles
 from jdem.validate import InputError, require_finite, require_positive
 
@@ -683,8 +684,6 @@ def random_packing(length, height, r_min, r_max, *, density=2500.0, seed=0, fix_
     radii uniform in [r_min, r_max]) from :func:`jdem.specimen.generate`, with
     disc density rho / (1 - porosity) so that the macroscopic density is
     ``density``.  Returns ``(particles, bonds, porosity)``."""
-    from jdem.specimen import generate
-
     sp = generate("rectangle", (float(length), float(height)), r_min, r_max, seed=seed)
     solid = 1.0 - sp.porosity
     p = sp.particles
@@ -898,21 +897,14 @@ def exposed_particles(particles, side="right", *, among=None) -> BoundarySet:
 
 def cut_packing(particles, bonds, x_max):
     """The discs of a packing whose centre lies at x <= ``x_max`` [m] and the
-    bonds between them (rows renumbered, order kept).  Returns
-    ``(particles, bonds, rows)`` with ``rows`` (M,) the kept rows of the input,
-    so that ``rows[k]`` is the original row of new disc k."""
+    bonds between them (rows renumbered, order kept; :func:`jdem.specimen.subset`).
+    Returns ``(particles, bonds, rows)`` with ``rows`` (M,) the kept rows of the
+    input, so that ``rows[k]`` is the original row of new disc k."""
     pos = np.asarray(particles.pos, np.float64)
-    keep = np.nonzero(np.asarray(particles.valid) & (pos[:, 0] <= float(x_max)))[0]
-    if keep.size == 0:
+    keep = np.asarray(particles.valid) & (pos[:, 0] <= float(x_max))
+    if not keep.any():
         raise InputError(f"x_max = {x_max!r} keeps no particle")
-    new = np.full(pos.shape[0], -1, np.int64)
-    new[keep] = np.arange(keep.size)
-    bi, bj = np.asarray(bonds.i), np.asarray(bonds.j)
-    kb = np.nonzero(np.asarray(bonds.valid) & (new[bi] >= 0) & (new[bj] >= 0))[0]
-    parts = jax.tree_util.tree_map(lambda a: a[jnp.asarray(keep)], particles)
-    b = jax.tree_util.tree_map(lambda a: a[jnp.asarray(kb)], bonds)
-    b = b._replace(i=jnp.asarray(new[bi[kb]], bonds.i.dtype), j=jnp.asarray(new[bj[kb]], bonds.j.dtype))
-    return parts, b, keep
+    return subset(particles, bonds, keep)
 
 
 class BarPair(NamedTuple):

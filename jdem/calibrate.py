@@ -1,16 +1,18 @@
 """Calibration of micro-parameters against stress-strain curves, and batched sweeps.
 
-* :func:`material` sets named material parameters on a ``Params`` consistently
-  (the unbonded rock contacts follow the bond's E and nu as in
-  :func:`jdem.labtests.rock_params`).
+* Named material parameters (:data:`jdem.materials.PARAMETERS`,
+  :func:`jdem.materials.material`) are set on ``Params`` consistently.
 * :func:`load_target` reads a target curve (arrays, a dict, a CSV file).
 * :func:`curve_loss` compares a simulated curve with a target sampled at other
   strains: interpolation onto common strains, weighting of the pre-peak and
   post-peak parts, peak-stress and modulus terms.
 * :func:`calibrate` fits chosen parameters with an optax optimiser (Adam) through
-  ``jax.grad`` of the differentiable UCS test (:mod:`jdem.difflab`), in a
-  bounded log space, with early stopping; the result saves to HDF5.  With a
-  model built on several packings (an ensemble) the loss is averaged over them.
+  ``jax.grad`` of the pure lab test (:func:`jdem.lab.curve`, the same
+  definition a production run uses), in a bounded log space, with early
+  stopping; the result saves to HDF5.  With a set-up built on several packings
+  (an ensemble) the loss is averaged over them.  The set-up must be
+  quasi-static (:func:`jdem.lab.certify`): calibration refuses one that is not,
+  unless ``require_quasi_static=False``.
 * Batched parameter sweeps of the platen tests live in :mod:`jdem.sweep`
   (which uses :func:`material` here).
 
@@ -31,56 +33,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jdem import lab
+from jdem import io
+from jdem.lab.summary import fit_modulus
+from jdem.materials import PARAMETERS, check_names, material, rock_params, values_of  # noqa: F401
+from jdem.specimen import generate
 from jdem.state import Params
 from jdem.validate import InputError
-
-#: name -> the Params fields it sets
-PARAMETERS = {
-    "E": ("bond_youngs",),
-    "nu": ("bond_poisson",),
-    "T0": ("bond_tensile",),
-    "c0": ("bond_cohesion",),
-    "phi": ("bond_friction_angle",),
-    "eps_lim": ("bond_tensile_strain",),
-    "gamma_lim": ("bond_shear_strain",),
-    "strength": ("bond_tensile", "bond_cohesion"),
-    "kappa": ("bond_tensile_strain", "bond_shear_strain"),
-}
 
 #: default bounds as factors of the starting value (log space), or absolute
 DEFAULT_BOUNDS = {"nu": (0.0, 0.45), "phi": (0.0, np.deg2rad(60.0))}
 DEFAULT_FACTOR = 5.0
-
-
-def _check_names(names):
-    for n in names:
-        if n not in PARAMETERS:
-            raise InputError(f"unknown parameter {n!r}; choose from {sorted(PARAMETERS)}")
-
-
-def material(params: Params, values: dict) -> Params:
-    """``params`` with the named values set (``PARAMETERS``); traceable.
-
-    When ``E`` or ``nu`` change, the rock contacts (material 0) follow as in
-    :func:`jdem.labtests.rock_params`: kn scales with E, ks = kn / (2 (1 + nu)).
-    """
-    _check_names(values)
-    new = {}
-    for name, v in values.items():
-        for field in PARAMETERS[name]:
-            new[field] = jnp.asarray(v, jnp.asarray(getattr(params, field)).dtype)
-    out = params._replace(**new)
-    if "E" in values or "nu" in values:
-        kn0 = params.kn[..., 0] * out.bond_youngs / params.bond_youngs
-        ks0 = kn0 / (2.0 * (1.0 + out.bond_poisson))
-        out = out._replace(kn=out.kn.at[..., 0].set(kn0), ks=out.ks.at[..., 0].set(ks0))
-    return out
-
-
-def values_of(params: Params, names) -> dict:
-    """The named values of ``params`` (first field of each name) as floats."""
-    _check_names(names)
-    return {n: float(np.asarray(getattr(params, PARAMETERS[n][0]))) for n in names}
+_check_names = check_names
 
 
 # ----------------------------------------------------------------------------- target curves
@@ -139,13 +103,14 @@ def load_target(source, *, strain_column=0, stress_column=1) -> Target:
     peak = float(stress[k])
     if not peak > 0:
         raise InputError(f"target stress has no positive peak (max {peak!r})")
-    lo, hi = 0.1 * peak, 0.4 * peak
-    sel = (stress[:k + 1] >= lo) & (stress[:k + 1] <= hi)
-    if sel.sum() >= 2:
-        e_sel = strain[:k + 1][sel]
-        modulus = float(np.polyfit(e_sel, stress[:k + 1][sel], 1)[0])
-        window = (float(e_sel.min()), float(e_sel.max()))
-    else:
+    if float(np.max(np.abs(strain))) > 0.2:
+        raise InputError(f"target strain reaches {float(np.max(np.abs(strain)))!r}: strain is "
+                         f"dimensionless (0.003, not 0.3 %); divide a percent column by 100")
+    if peak < 1e4:
+        raise InputError(f"target peak stress is {peak!r} Pa: stress must be in Pa "
+                         f"(this looks like MPa: multiply by 1e6)")
+    modulus, window = fit_modulus(strain, stress, min_points=2)
+    if not np.isfinite(modulus):
         modulus, window = peak / max(float(strain[k]), 1e-300), (0.0, float(strain[k]))
     return Target(strain, stress, peak, float(strain[k]), modulus, window)
 
@@ -264,27 +229,25 @@ class CalibrationResult(NamedTuple):
     wall_time: float
 
 
-def calibration_loss(params: Params, model, target: Target, weights=LossWeights()):
-    """Loss of ``params`` on a :class:`jdem.difflab.CurveModel` (mean over an
-    ensemble's members) and the curve dict."""
-    from jdem.difflab import simulate_curve
-
-    out = simulate_curve(params, model)
-    if model.spec.ensemble:
-        losses = jax.vmap(lambda e, s: curve_loss(e, s, target, weights))(out["strain"],
-                                                                          out["stress"])
-        return jnp.mean(losses), out
-    return curve_loss(out["strain"], out["stress"], target, weights), out
+def calibration_loss(params: Params, setup, target: Target, weights=LossWeights()):
+    """Loss of ``params`` on a lab-test :class:`jdem.lab.Setup` (mean over an
+    ensemble's members) and the history of the pure run."""
+    hist = lab.curve(setup, params).history
+    e, s = hist["axial_strain"], hist["axial_stress"]
+    if setup.plan.batched:
+        losses = jax.vmap(lambda a, b: curve_loss(a, b, target, weights))(e, s)
+        return jnp.mean(losses), hist
+    return curve_loss(e, s, target, weights), hist
 
 
-def calibrate(model, params: Params, target, start: dict, *, bounds=None, steps=100,
+def calibrate(setup, target, start: dict, *, params=None, bounds=None, steps=100,
               learning_rate=0.1, weights=LossWeights(), tol=1e-5, patience=20,
-              min_improvement=1e-3, progress=True, out=None):
+              min_improvement=1e-3, progress=True, out=None, require_quasi_static=True):
     """Fit the named parameters of ``start`` to ``target`` by gradient descent.
 
-    model          :class:`jdem.difflab.CurveModel` from :func:`jdem.difflab.ucs_model`
-                   (one packing or an ensemble)
-    params         its ``Params`` (as returned by ``ucs_model``)
+    setup          a :class:`jdem.lab.Setup` (e.g. ``jdem.lab.UCS.setup(specimen,
+                   params, stiffness_margin=2)``: one packing or an ensemble)
+    params         default ``setup.params``
     target         anything :func:`load_target` takes
     start          name -> starting value (names from ``PARAMETERS``)
     bounds         name -> (lo, hi); default: ``DEFAULT_BOUNDS`` or start / 5 .. start x 5.
@@ -296,21 +259,28 @@ def calibrate(model, params: Params, target, start: dict, *, bounds=None, steps=
     patience       stop when the best loss has not improved by a fraction
                    ``min_improvement`` for this many steps
     out            optional HDF5 path for the result (:func:`save_calibration`)
+    require_quasi_static  run :func:`jdem.lab.certify` at the start values first and
+                   raise ``InputError`` if the set-up is not quasi-static (the fit
+                   would describe the loading rate, not the rock)
     """
     import optax
 
-    from jdem.difflab import checked_curve, grow
-
+    params = setup.params if params is None else params
     target = target if isinstance(target, Target) else load_target(target)
-    _check_names(start)
+    check_names(start)
     names = list(start)
     lims = {n: _bounds_for(n, float(start[n]), bounds) for n in names}
     u = {n: jnp.asarray(_to_internal(float(start[n]), *lims[n])) for n in names}
-    curve0, model = checked_curve(material(params, start), model)
+    if require_quasi_static:
+        cert = lab.certify(setup, material(params, start))
+        if not cert.quasi_static:
+            raise InputError(f"the calibration set-up is not quasi-static: {cert}; lower "
+                             f"loading_rate, or pass require_quasi_static=False")
+    curve0, setup = lab.checked_curve(setup, material(params, start))
 
     def loss_fn(u):
         vals = {n: _to_value(u[n], *lims[n]) for n in names}
-        loss, out = calibration_loss(material(params, vals), model, target, weights)
+        loss, out = calibration_loss(material(params, vals), setup, target, weights)
         return loss, (out["overflowed"], out["first_bad_step"])
 
     # Adam with a cosine decay to 5 % of the rate: large early steps, then settling
@@ -333,7 +303,7 @@ def calibrate(model, params: Params, target, start: dict, *, bounds=None, steps=
         while k < steps:
             (loss, (over, bad)), g = grad_fn(u)
             if bool(over):
-                model = grow(model)
+                setup = lab.grow(setup)
                 grad_fn = jax.jit(jax.value_and_grad(loss_fn, has_aux=True))
                 continue
             if int(bad) >= 0 or not np.isfinite(float(loss)):
@@ -363,10 +333,10 @@ def calibrate(model, params: Params, target, start: dict, *, bounds=None, steps=
         if bar is not None:
             bar.close()
     fitted = material(params, best[1])
-    curve1, model = checked_curve(fitted, model)
+    curve1, setup = lab.checked_curve(setup, fitted)
     curves = dict(target_strain=target.strain, target_stress=target.stress,
-                  strain=curve0["strain"], start_stress=curve0["stress"],
-                  fit_stress=curve1["stress"])
+                  strain=curve0["axial_strain"], start_stress=curve0["axial_stress"],
+                  fit_stress=curve1["axial_stress"])
     res = CalibrationResult(values=best[1], loss=best[0], start=dict(start),
                             history={k_: np.asarray(v) for k_, v in hist.items()}, steps=k,
                             converged=converged, params=fitted, curves=curves,
@@ -379,8 +349,6 @@ def calibrate(model, params: Params, target, start: dict, *, bounds=None, steps=
 def save_calibration(path, res: CalibrationResult):
     """Write a :class:`CalibrationResult` to HDF5 (``jdem.io.save_run``: params,
     history = loss/parameter history and curves, attrs = fitted and start values)."""
-    from jdem import io
-
     history = {f"iter_{k}": v for k, v in res.history.items()}
     history.update(res.curves)
     attrs = {f"fit_{k}": v for k, v in res.values.items()}
@@ -393,8 +361,6 @@ def save_calibration(path, res: CalibrationResult):
 def load_calibration(path) -> dict:
     """``{values, start, loss, steps, converged, history, curves, params}`` from
     :func:`save_calibration`."""
-    from jdem import io
-
     rd = io.load_run(path)
     a = rd.attrs or {}
     hist = rd.history or {}
@@ -450,21 +416,22 @@ def plot_calibration(res: CalibrationResult, path=None, *, true_values=None):
 DEMO_TRUE = dict(E=30e9, strength=3e6, kappa=3e-3)
 
 
-def demo_problem(*, seed=2, size=(0.004, 0.008), radii=(0.2e-3, 0.35e-3), kappa_known=True):
+def demo_problem(*, seed=2, size=(0.004, 0.008), radii=(0.2e-3, 0.35e-3), kappa_known=True,
+                 loading_rate=None):
     """A small calibration problem with a known answer (used by ``jdem demo`` and
-    notebooks/calibration.ipynb): a ~100-disc bonded specimen (4 mm x 8 mm), the
-    target curve simulated with ``DEMO_TRUE`` and a start with E 40 % high and the
-    strength 30 % low (and kappa 50 % high unless ``kappa_known``).  Returns
-    ``(model, params, target curve dict, true values, start values)``."""
-    from jdem import difflab, labtests
-    from jdem.specimen import generate
-
+    notebooks/calibration.ipynb): a ~100-disc bonded specimen (4 mm x 8 mm) in
+    the quasi-static UCS test, the target curve simulated with ``DEMO_TRUE`` and
+    a start with E 40 % high and the strength 30 % low (and kappa 50 % high
+    unless ``kappa_known``).  Returns ``(setup, params, target curve dict
+    (strain, stress), true values, start values)``."""
     spec = generate("rectangle", size, *radii, seed=seed, target_coordination=4.5)
-    model, params = difflab.ucs_model(spec, labtests.rock_params(2, kappa=DEMO_TRUE["kappa"]),
-                                      max_strain=2.2e-3)
-    curve, model = difflab.checked_curve(material(params, DEMO_TRUE), model)
+    setup = lab.UCS.setup(spec, rock_params(2, kappa=DEMO_TRUE["kappa"]), max_strain=1.2e-3,
+                          stiffness_margin=2.0, loading_rate=loading_rate)
+    params = setup.params
+    hist, setup = lab.checked_curve(setup, material(params, DEMO_TRUE))
+    curve = dict(strain=hist["axial_strain"], stress=hist["axial_stress"])
     start = dict(E=1.4 * DEMO_TRUE["E"], strength=0.7 * DEMO_TRUE["strength"])
     if not kappa_known:
         start["kappa"] = 1.5 * DEMO_TRUE["kappa"]
     true = {k: DEMO_TRUE[k] for k in start}
-    return model, params, curve, true, start
+    return setup, params, curve, true, start

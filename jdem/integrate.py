@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from jdem import contact, damping, neighbors, walls as walls_mod
+from jdem import bond
 from jdem.state import Config, Params, State
 
 
@@ -33,8 +34,6 @@ def forces(state: State, params: Params, config: Config):
     contacts, f, t, _ = contact.contact_forces(state.contacts, p, params, config)
     bonds = state.bonds
     if bonds.i.shape[0] > 0:
-        from jdem import bond
-
         bonds, fb, tb = bond.bond_forces(bonds, p, params, config.dim, state.step)
         f, t = f + fb, t + tb
     walls, fw, tw, _ = walls_mod.wall_forces(state.walls, p, params, config)
@@ -57,12 +56,15 @@ def physics_step(state: State, params: Params, config: Config, boundary=None) ->
     history, and returns an extra force (N, d) [N] that is added to the particle
     forces like ``ext_force``.  ``data`` is a pytree (traced, differentiable).
     """
+    extra = ()
     if boundary is not None:
         fn, data = boundary
-        state, extra = fn(state, params, data)
+        state, *extra = fn(state, params, data)
     state, force, torque = forces(state, params, config)
-    if boundary is not None:
-        force = force + extra
+    if extra:
+        force = force + extra[0]
+        if len(extra) > 1:
+            torque = torque + extra[1]
     p = state.particles
     force, torque = damping.apply(force, torque, p, params)
     dt = params.dt

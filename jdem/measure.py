@@ -9,8 +9,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from jdem import contact
+from jdem import damping, integrate
 from jdem.kinematics import dot, unit
-from jdem.walls import wall_law
+from jdem.walls import normal_stress, wall_law
 from jdem.state import Config, Params, State
 
 
@@ -61,8 +62,6 @@ def coordination_number(state: State):
 
 def basic_observables(state: State, params: Params, config: Config):
     """What :func:`jdem.simulate.run` records by default."""
-    from jdem.walls import normal_stress
-
     out = dict(step=state.step, time=state.time, kinetic_energy=kinetic_energy(state),
                coordination=coordination_number(state))
     if state.walls.point.shape[0]:
@@ -78,8 +77,6 @@ def synchronized_kinetic_energy(state: State, params: Params, config: Config):
     them by half a step with the current (damped) forces, v(t) = v(t - dt/2) +
     F(t) dt / (2m), the velocity-Verlet form.  Use it for energy balances.
     """
-    from jdem import damping, integrate
-
     _, force, torque = integrate.forces(state, params, config)
     p = state.particles
     force, torque = damping.apply(force, torque, p, params)

@@ -64,7 +64,7 @@ def _sort_pairs(major, minor, major_max, n_minor):
     return jax.lax.sort((major, minor), num_keys=2)
 
 
-def _cell_table(particles: Particles, config: Config):
+def cell_table(particles: Particles, config: Config):
     """Particles sorted into cells: table (n_cells + 1, K) of particle ids, N = empty.
 
     Returns the table, each particle's cell coordinates and the fullest cell's count.
@@ -84,7 +84,7 @@ def _cell_table(particles: Particles, config: Config):
     return table, coords, max_in_cell
 
 
-def _candidates(particles: Particles, config: Config):
+def candidates(particles: Particles, config: Config):
     """All (i, j) with j in a cell adjacent to i's: arrays (N, M) with M = 3**d * K.
 
     Row i lists the table rows of i's 3**d neighbour cells in stencil order (N marks
@@ -95,7 +95,7 @@ def _candidates(particles: Particles, config: Config):
     per-particle gather is kept, whose size does not grow with the empty cells.
     """
     n = particles.pos.shape[0]
-    table, coords, max_in_cell = _cell_table(particles, config)
+    table, coords, max_in_cell = cell_table(particles, config)
     if config.n_cells <= n:
         shape = tuple(config.grid_shape)
         grid = table[:config.n_cells].reshape(shape + (config.max_per_cell,))
@@ -198,7 +198,7 @@ def _compact(mask, cand, cap, max_per_cell):
     return jnp.where(valid, row, 0), jnp.where(valid, new_j, 0), valid, count
 
 
-def _carry_history(contacts: Contacts, new_i, new_j, valid, n):
+def carry_history(contacts: Contacts, new_i, new_j, valid, n):
     """Tangential history (cap, d) of the new pairs: the old row's value where (i, j)
     was listed before, else 0.  The old list is grouped by i, so each new pair scans
     the old rows of its particle i (a loop as long as the longest such run)."""
@@ -234,7 +234,7 @@ def build(contacts: Contacts, particles: Particles, config: Config, bonds=None) 
     """
     n = particles.pos.shape[0]
     cap = contacts.i.shape[0]
-    cand, max_in_cell = _candidates(particles, config)
+    cand, max_in_cell = candidates(particles, config)
     ii = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32)[:, None], cand.shape)
     real = (cand < n) & (cand > ii) & particles.valid[:, None]
     # gap test one component at a time (N,) -> (N, M): no (N, M, d) temporaries
@@ -248,7 +248,7 @@ def build(contacts: Contacts, particles: Particles, config: Config, bonds=None) 
     if bonds is not None and bonds.i.shape[0] > 0:
         mask = mask & ~_bonded(bonds, cand)
     new_i, new_j, valid, count = _compact(mask, cand, cap, config.max_per_cell)
-    shear = _carry_history(contacts, new_i, new_j, valid, n)
+    shear = carry_history(contacts, new_i, new_j, valid, n)
     return Contacts(
         i=new_i, j=new_j, valid=valid, shear=shear,
         pos_at_build=particles.pos, radius_at_build=particles.radius,
@@ -359,3 +359,32 @@ def _resize(contacts: Contacts, cap: int) -> Contacts:
                              shear=pad(contacts.shear),
                              n_pairs=jnp.zeros((), jnp.int32),
                              max_in_cell=jnp.zeros((), jnp.int32))
+
+
+def reallocate(contacts: Contacts, particles: Particles, config: Config, bonds=None, *,
+               capacity: int | None = None):
+    """The one way to give a neighbour list more room (host function).
+
+    The growth policy: the capacity becomes ``capacity`` if given, else
+    :func:`room_for` of the most pairs any build found (``contacts.n_pairs``),
+    never less than it was; ``config.max_per_cell`` grows to the fullest cell
+    seen plus 2.  The list is then rebuilt at the current positions, keeping
+    the tangential history of the pairs it holds.  Works on a batch (leading
+    member axis on ``contacts``, ``particles`` and ``bonds``): every member gets
+    the same capacity.  Returns ``(contacts, config)``.
+
+    Use it when :func:`overflowed` is true after a run, then run the chunk again
+    from its starting state (the host loop of :func:`jdem.run` and of
+    :func:`jdem.lab.run` does that for you).
+    """
+    old_cap = int(contacts.i.shape[-1])
+    need_pairs = int(np.max(np.asarray(contacts.n_pairs)))
+    need_cell = int(np.max(np.asarray(contacts.max_in_cell)))
+    cap = max(old_cap, room_for(need_pairs) if capacity is None else int(capacity))
+    config = config.replace(max_per_cell=max(config.max_per_cell, need_cell + 2))
+
+    def regrow(c, p, b):
+        return build(_resize(c, cap), p, config, b)
+
+    fn = jax.vmap(regrow) if contacts.i.ndim == 2 else regrow
+    return jax.jit(fn)(contacts, particles, bonds), config

@@ -145,19 +145,6 @@ def advance(state: State, params: Params, config: Config, n_steps, *, batched=Fa
 
 
 # ----------------------------------------------------------------------------- host loop
-def _grow(state: State, config: Config, need_pairs: int, need_cell: int, batched: bool):
-    """Re-allocate the neighbour list of ``state`` larger and rebuild it."""
-    cap = max(state.contacts.i.shape[-1], neighbors.room_for(need_pairs))
-    config = config.replace(max_per_cell=max(config.max_per_cell, need_cell + 2))
-
-    def regrow(contacts, particles, bonds):
-        return neighbors.build(neighbors._resize(contacts, cap), particles, config, bonds)
-
-    fn = jax.vmap(regrow) if batched else regrow
-    contacts = jax.jit(fn)(state.contacts, state.particles, state.bonds)
-    return state._replace(contacts=contacts), config
-
-
 def _check_inputs(state: State, params: Params, config: Config, batched: bool, check_dt: bool):
     from jdem.timestep import check_timestep
 
@@ -213,9 +200,12 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
             chunk = _compiled_chunk(config, n_rec, record_every, observe, batched, boundary_fn)
             new_state, hist = chunk(state, params, data)
             if bool(neighbors.overflowed(new_state.contacts, config)):
-                need_pairs = int(jnp.max(new_state.contacts.n_pairs))
-                need_cell = int(jnp.max(new_state.contacts.max_in_cell))
-                state, config = _grow(state, config, need_pairs, need_cell, batched)
+                # the needs the failed chunk recorded, on the chunk's starting list
+                need = state.contacts._replace(n_pairs=new_state.contacts.n_pairs,
+                                               max_in_cell=new_state.contacts.max_in_cell)
+                contacts, config = neighbors.reallocate(need, state.particles, config,
+                                                        state.bonds)
+                state = state._replace(contacts=contacts)
                 continue  # redo the chunk with room for every pair
             bad = np.asarray(new_state.first_bad_step)
             if np.any(bad >= 0):
@@ -257,8 +247,3 @@ def _stack(history, batched):
     if batched:
         out = {k: np.swapaxes(v, 0, 1) for k, v in out.items()}
     return out
-
-
-def broadcast_batch(tree, batch: int):
-    """Repeat every leaf of ``tree`` along a new leading axis of size ``batch``."""
-    return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (batch,) + jnp.shape(a)), tree)

@@ -29,6 +29,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from jdem.validate import check_params, check_particle_input
+
 Array = jnp.ndarray
 
 
@@ -297,8 +299,6 @@ def make_params(dim: int = 2, n_materials: int = 1, *, dt: float = 1e-6,
     ``ks`` defaults to ``kn`` (stiffness ratio 1, 000 eq 4-3).  Values are checked
     by :func:`jdem.validate.check_params`.
     """
-    from jdem.validate import check_params
-
     dtype = dtype or jnp.zeros(()).dtype
     f = lambda v: jnp.asarray(v, dtype=dtype)
     per_mat = lambda v: jnp.broadcast_to(f(v), (n_materials,)) + jnp.zeros((n_materials,), dtype)
@@ -326,8 +326,6 @@ def make_particles(pos, radius, *, density=2500.0, vel=None, angvel=None, materi
     (m = rho 4/3 pi r^3, I = 2/5 m r^2).  ``capacity`` >= n pads with invalid rows.
     Raises ``ValueError`` naming the field for negative / non-finite radii etc.
     """
-    from jdem.validate import check_particle_input
-
     pos = np.asarray(pos, dtype=np.float64)
     radius = np.asarray(radius, dtype=np.float64)
     n, dim = pos.shape if pos.ndim == 2 else (None, None)

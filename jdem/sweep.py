@@ -1,10 +1,11 @@
 """Batched parameter sweeps of the platen tests, sharded over devices.
 
-A sweep runs one laboratory test (:mod:`jdem.labtests`: uniaxial or biaxial
-compression, Brazilian splitting) on one specimen for many sets of material
-parameters, as vmapped batches (``jdem.run(batched=True)``), and collects a
-table: the swept parameters, the key figures of every curve
-(:func:`jdem.labtests.peak_summary`) and the curves themselves.
+A sweep runs one laboratory test (a :mod:`jdem.lab` test object: uniaxial or
+biaxial compression, Brazilian splitting, direct tension) on one specimen for
+many sets of material parameters, as batches of the host loop
+(:func:`jdem.lab.run`), and collects a table: the swept parameters, the key
+figures of every curve (:func:`jdem.lab.peak_summary`) and the curves
+themselves.
 
 * :func:`grid` and :func:`latin_hypercube` make the samples (dict name -> (n,)).
 * :func:`sweep` runs them and returns a :class:`SweepTable`.
@@ -19,7 +20,7 @@ and the tied pairs ``strength`` (T0 = c0) and ``kappa`` (eps_lim = gamma_lim));
 
 Reproducibility.  The whole sweep uses one time step: the recommended step
 (``jdem.timestep.recommended``) of the stiffest sample, i.e. the smallest over
-all samples of the step :func:`jdem.labtests.platen_setup` would choose for it.
+all samples of the step the test's set-up would choose for it.
 A member's result therefore does not depend on which other members share its
 batch, up to round-off: the neighbour list of a batch is rebuilt when any
 member needs it (the list is kept sorted, so this reorders no sum).
@@ -37,7 +38,7 @@ device, batches of 2, 3 and 4 copies of a sample gave bitwise-identical
 members, and a sweep sharded so that every device holds one member
 reproduces a one-device sweep with ``batch_size=1`` bitwise
 (tests/test_sweep.py).  With smooth damping (``local_damping = 0``,
-dashpots, as in :func:`jdem.difflab.quasi_static_damping`) the amplification
+dashpots, the default :func:`jdem.lab.smooth`) the amplification
 is far weaker (peak stress 6e-8, modulus 3e-16).
 
 Sharding.  With ``shard=True`` and more than one device, every leaf of a
@@ -58,14 +59,14 @@ import time
 import jax
 import numpy as np
 
-from jdem import labtests as lt
-from jdem.calibrate import PARAMETERS, material
-from jdem.simulate import broadcast_batch
+from jdem import lab
+from jdem.batch import broadcast_batch
+from jdem.io import open_hdf5
+from jdem.materials import PARAMETERS, material
+from jdem.specimen import as_arrays
 from jdem.validate import InputError, check_params
 
-TESTS = ("ucs", "biaxial", "brazilian")
-
-#: columns taken from :func:`jdem.labtests.peak_summary`
+#: columns taken from :func:`jdem.lab.peak_summary`
 SUMMARY_COLUMNS = ("peak_stress", "youngs_modulus", "critical_strain", "poisson_ratio",
                    "fracture_degree_at_peak", "fracture_degree_end", "final_stress")
 
@@ -96,8 +97,8 @@ class SweepTable(dict):
     ``attrs``: ``test``, ``parameters`` (swept names, in order), ``n_devices``,
     ``dt`` [s], ``wall_time`` [s], ``batch_size`` (members per compiled batch,
     padding included), ``n_batches``, ``steps`` (steps per member),
-    ``member_steps_per_second``, ``platen_step`` [m], ``max_strain``,
-    ``confining_stress`` [Pa] (0: none), ``record_every``, ``chunk_steps``,
+    ``member_steps_per_second``, ``loading_rate``, ``max_strain``,
+    ``confining_stress`` [Pa] (0: none), ``record_every``, ``damping``,
     ``n_particles``.
     """
 
@@ -283,78 +284,57 @@ def _placer(devs):
 
 
 # ----------------------------------------------------------------------------- running
-def _setup(test, specimen, params, *, platen_step, confining_stress, preload_steps, dt,
-           record_every, chunk_steps):
-    if test == "brazilian":
-        return lt.platen_setup(specimen, params, test="brazilian", platen_step=platen_step,
-                               dt=dt)
-    return lt.ucs_setup(specimen, params, platen_step=platen_step,
-                        confining_stress=confining_stress, dt=dt, preload_steps=preload_steps,
-                        record_every=record_every, chunk_steps=chunk_steps)
+def _test(test):
+    if isinstance(test, str):
+        if test not in lab.TESTS:
+            raise InputError(f"test must be a jdem.lab test or one of {sorted(lab.TESTS)}, "
+                             f"got {test!r}")
+        return lab.TESTS[test]
+    if not isinstance(test, lab.LabTest):
+        raise InputError(f"test must be a jdem.lab test (e.g. jdem.lab.UCS), got {test!r}")
+    return test
 
 
-def sweep_timestep(specimen, params, *, test="ucs", platen_step=1e-9, confining_stress=None,
-                   batch_size=16) -> float:
-    """The one time step [s] of a sweep: the smallest over the members of
-    batched ``params`` of the step :func:`jdem.labtests.platen_setup` chooses
-    (``jdem.timestep.recommended`` of the critical step with the platens, and
-    for a biaxial test the lateral walls, in contact)."""
+def sweep_timestep(specimen, params, *, test=lab.UCS, batch_size=16, **options) -> float:
+    """The one time step [s] of a sweep: the smallest over the members of batched
+    ``params`` of the step ``test.setup`` chooses (``jdem.timestep.recommended`` of
+    the critical step with the platens, and lateral walls, in contact)."""
+    test = _test(test)
     n = int(np.shape(params.dt)[0])
     best = np.inf
     for k in range(math.ceil(n / batch_size)):
         idx = np.arange(k * batch_size, min((k + 1) * batch_size, n))
-        su = lt.platen_setup(specimen, _take(params, idx), test=test, platen_step=platen_step,
-                             confining_stress=confining_stress, top_stress=confining_stress)
-        best = min(best, float(np.asarray(su.params.dt)[0]))
+        su = test.setup(specimen, _take(params, idx), **options)
+        best = min(best, float(np.asarray(su.params.dt).reshape(-1)[0]))
     return best
 
 
-def _check_options(test, batch_size, platen_step, max_strain, confining_stress, record_every,
-                   chunk_steps):
-    if test not in TESTS:
-        raise InputError(f"test must be one of {TESTS}, got {test!r}")
+def _check_options(batch_size, max_strain):
     if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
             or batch_size < 1:
         raise InputError(f"batch_size must be an integer >= 1, got {batch_size!r}")
-    if np.ndim(platen_step) or not (np.isfinite(platen_step) and platen_step > 0):
-        raise InputError(f"platen_step must be one length > 0 [m], got {platen_step!r}")
     if not (np.isfinite(max_strain) and max_strain > 0):
         raise InputError(f"max_strain must be > 0, got {max_strain!r}")
-    if test == "biaxial":
-        if confining_stress is None or not (np.isfinite(confining_stress)
-                                            and confining_stress > 0):
-            raise InputError(f"test='biaxial' needs confining_stress > 0 [Pa], got "
-                             f"{confining_stress!r}")
-    elif confining_stress is not None:
-        raise InputError(f"confining_stress = {confining_stress!r} applies to test='biaxial' "
-                         f"only (test={test!r})")
-    if record_every < 1 or chunk_steps % record_every:
-        raise InputError(f"record_every = {record_every} must divide chunk_steps = {chunk_steps}")
 
 
-def sweep(specimen, base_params, samples: dict, *, test="ucs", batch_size=16, shard=True,
-          devices=None, platen_step=1e-9, max_strain=3e-3, confining_stress=None,
-          preload_steps=20_000, record_every=lt.UCS_RECORD_EVERY,
-          chunk_steps=lt.UCS_CHUNK_STEPS, stop_stress_ratio=None, dt=None, progress=True,
-          out=None) -> SweepTable:
-    """Run one platen test for every sample and tabulate the results.
+def sweep(specimen, base_params, samples: dict, *, test=lab.UCS, batch_size=16, shard=True,
+          devices=None, max_strain=3e-3, stop_stress_ratio=None, dt=None, progress=True,
+          out=None, chunk_records=None, **options) -> SweepTable:
+    """Run one lab test for every sample and tabulate the results.
 
     specimen        :class:`jdem.specimen.Specimen` (or ``(particles, bonds)``);
-                    a 2D disc for ``test="brazilian"``
+                    a 2D disc for :data:`jdem.lab.BRAZILIAN`
     base_params     unbatched ``Params`` of rock (material 0) and platen
-                    (material 1), e.g. :func:`jdem.labtests.rock_params`
-    samples         dict name -> (n,) values (names from ``jdem.calibrate.PARAMETERS``;
+                    (material 1), e.g. :func:`jdem.materials.rock_params`
+    samples         dict name -> (n,) values (names from ``jdem.materials.PARAMETERS``;
                     e.g. from :func:`grid` or :func:`latin_hypercube`); each
-                    sample overrides ``base_params`` via ``jdem.calibrate.material``
-    test            "ucs" (free sides), "biaxial" (lateral servo walls at
-                    ``confining_stress`` [Pa] after ``preload_steps`` of isotropic
-                    pre-load) or "brazilian" (diametral compression of a disc)
+                    sample overrides ``base_params`` via ``jdem.materials.material``
+    test            a :mod:`jdem.lab` test object (``lab.UCS``, ``lab.BIAXIAL`` with
+                    ``confining_stress=``, ``lab.BRAZILIAN``, ``lab.TENSION``), or its name
     batch_size      most members per vmapped batch (padding excluded)
     shard           split every batch over ``devices`` (default: all of
                     ``jax.devices()``) along its batch axis when there are several
-    platen_step     top platen displacement per step [m]
-    max_strain      axial strain to load to (rounded up to whole chunks)
-    record_every, chunk_steps   steps per record and per jitted chunk
+    max_strain      axial strain to load to
     stop_stress_ratio  stop a batch once all its members fell below this fraction
                     of their peak (None: run to ``max_strain``); shorter curves
                     are padded with NaN in the table
@@ -362,18 +342,21 @@ def sweep(specimen, base_params, samples: dict, *, test="ucs", batch_size=16, sh
                     stiffest sample's recommended step), used by every batch
     progress        a tqdm bar over the batches
     out             optional HDF5 path: the table is saved there (:func:`save_sweep`)
+    chunk_records   records per jitted chunk of :func:`jdem.lab.run`
+    options         passed to ``test.setup`` (``loading_rate`` or ``platen_step``,
+                    ``confining_stress``, ``damping``, ``record_every``, ...)
 
     Returns a :class:`SweepTable` (columns of shape (n,) and the curves (n, R)).
     Bad names or values raise ``jdem.validate.InputError`` naming them.
     """
-    _check_options(test, batch_size, platen_step, max_strain, confining_stress, record_every,
-                   chunk_steps)
+    test = _test(test)
+    _check_options(batch_size, max_strain)
     samples, n = _check_samples(samples)
     params = _batched_params(base_params, samples, n)
+    options = dict(options, max_strain=max_strain)
     t_start = time.perf_counter()
     if dt is None:
-        dt = sweep_timestep(specimen, params, test=test, platen_step=platen_step,
-                            confining_stress=confining_stress, batch_size=batch_size)
+        dt = sweep_timestep(specimen, params, test=test, batch_size=batch_size, **options)
     elif not (np.isfinite(dt) and dt > 0):
         raise InputError(f"dt must be > 0 [s] (or None), got {dt!r}")
     dt = float(dt)
@@ -384,34 +367,27 @@ def sweep(specimen, base_params, samples: dict, *, test="ucs", batch_size=16, sh
 
     rows, curves = [], []
     steps = 0
-    n_particles = int(np.sum(np.asarray(lt._specimen_arrays(specimen)[0].valid)))
+    n_particles = int(np.sum(np.asarray(as_arrays(specimen)[0].valid)))
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=n_batches, desc=f"sweep {test}", unit="batch", leave=False)
+        bar = tqdm(total=n_batches, desc=f"sweep {test.name}", unit="batch", leave=False)
+    plan = None
     try:
         for k in range(n_batches):
             idx, real = _batch_indices(n, per, k)
-            su = _setup(test, specimen, place(_take(params, idx)), platen_step=platen_step,
-                        confining_stress=confining_stress, preload_steps=preload_steps, dt=dt,
-                        record_every=record_every, chunk_steps=chunk_steps)
-            state, bparams = place(su.state), place(su.params)
-            n_steps = math.ceil(max_strain * su.frame.h0 / platen_step / chunk_steps) \
-                * chunk_steps
-            hist, _, _ = lt.platen_run(state, bparams, su.config, su.frame, n_steps,
-                                       record_every=record_every, chunk_steps=chunk_steps,
-                                       batched=True, stop_stress_ratio=stop_stress_ratio,
-                                       desc=test)
-            hist = {key: np.asarray(v)[:real] for key, v in hist.items()}
-            summary = lt.peak_summary(hist)
-            if test == "brazilian":
-                summary["tensile_strength"] = (2.0 * summary["peak_stress"]
-                                               / (np.pi * su.frame.diameter * 1.0))
-            rows.append(summary)
+            su = test.setup(specimen, _take(params, idx), dt=dt, **options)
+            su = su.replace(state=place(su.state), params=place(su.params),
+                            frame=place(su.frame))
+            plan = su.plan
+            res = lab.run(su, progress=False, stop_stress_ratio=stop_stress_ratio,
+                          chunk_records=chunk_records)
+            hist = {key: np.asarray(v)[:real] for key, v in res.history.items()}
+            rows.append(lab.peak_summary(hist))
             curves.append((hist["axial_strain"], hist["axial_stress"]))
             steps = max(steps, int(np.asarray(hist["step"]).max() - np.asarray(hist["step"]).min()
-                                   + record_every))
+                                   + plan.record_every))
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(samples=f"{min((k + 1) * per, n)}/{n}")
@@ -423,19 +399,20 @@ def sweep(specimen, base_params, samples: dict, *, test="ucs", batch_size=16, sh
     table = SweepTable()
     for name, v in samples.items():
         table[name] = v.copy()
-    cols = SUMMARY_COLUMNS + (("tensile_strength",) if test == "brazilian" else ())
+    cols = SUMMARY_COLUMNS + (("tensile_strength",) if "tensile_strength" in rows[0] else ())
     for c in cols:
         table[c] = np.concatenate([np.asarray(r[c], np.float64) for r in rows])
     r_max = max(e.shape[1] for e, _ in curves)
     table["n_records"] = np.concatenate([np.full(e.shape[0], e.shape[1]) for e, _ in curves])
     for j, key in enumerate(("strain", "stress")):
         table[key] = np.concatenate([_pad_nan(c[j], r_max) for c in curves])
-    table.attrs = dict(test=test, parameters=list(samples), n_devices=n_dev, dt=dt,
+    table.attrs = dict(test=test.name, parameters=list(samples), n_devices=n_dev, dt=dt,
                        wall_time=wall, batch_size=per, n_batches=n_batches, steps=steps,
-                       member_steps_per_second=n * steps / wall, platen_step=float(platen_step),
+                       member_steps_per_second=n * steps / wall,
+                       loading_rate=float(plan.option("loading_rate")),
                        max_strain=float(max_strain),
-                       confining_stress=float(confining_stress or 0.0),
-                       record_every=int(record_every), chunk_steps=int(chunk_steps),
+                       confining_stress=float(options.get("confining_stress") or 0.0),
+                       record_every=int(plan.record_every), damping=str(plan.damping),
                        n_particles=n_particles)
     if out is not None:
         save_sweep(out, table)
@@ -478,8 +455,6 @@ def save_sweep(path, table: SweepTable) -> pathlib.Path:
 def load_sweep(path) -> SweepTable:
     """Read a table written by :func:`save_sweep` (columns as NumPy arrays with
     their stored dtype; attributes as Python values)."""
-    from jdem.io import open_hdf5
-
     path = pathlib.Path(path)
     with open_hdf5(path) as f:
         fmt = f.attrs.get("format")

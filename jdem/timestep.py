@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jdem import contact
+from jdem import bond
 from jdem.walls import wall_law
 from jdem.kinematics import segment_add
 from jdem.state import Config, Params, State
@@ -47,8 +48,6 @@ def _stiffness_sums(state: State, params: Params, config: Config):
         k_rot = k_rot + jnp.sum(jnp.where(touch, wkt * p.radius[None] ** 2, 0.0), axis=0)
     b = state.bonds
     if b.i.shape[0]:
-        from jdem import bond
-
         g = bond.bond_geometry(b, p, params, config.dim)
         live = b.valid
         bk = jnp.where(live, g.kn + g.ks, 0.0)

@@ -1,23 +1,16 @@
 """Test-suite set-up: validation runs in float64 (analytic comparisons need it).
 
-JAX's persistent compilation cache is pointed at a fresh folder for the session
-(also inherited by the notebook kernels and CLI subprocesses through the
-environment): several tests compile the same programs (the demo problem's curve
-and gradient in test_calibrate, test_cli and the calibration notebook), and the
-cache compiles each once.  The pytest-xdist workers (``-n 2`` in pyproject's
-addopts) inherit the folder from the controlling process, which removes it.
-Set ``JAX_COMPILATION_CACHE_DIR`` yourself to keep a cache between runs.
+JAX's persistent compilation cache is switched off for the suite: with it, a
+worker that loaded the calibration demo's gradient program compiled by another
+process (the notebook kernel or the other worker) aborted inside XLA's
+``deserialize_executable`` (twice in a row, with and without the cache's file
+lock), killing the worker.  Each process compiles its own programs instead.
 """
-import atexit
 import os
-import shutil
-import tempfile
 
 os.environ.setdefault("JDEM_SMALL", "1")  # notebooks and studies run their small configuration
-if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
-    _cache = tempfile.mkdtemp(prefix="jdem-jax-cache-")
-    os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
-    atexit.register(shutil.rmtree, _cache, ignore_errors=True)
+os.environ.pop("JAX_COMPILATION_CACHE_DIR", None)     # inherited by kernels and subprocesses
+os.environ["JAX_ENABLE_COMPILATION_CACHE"] = "false"
 
 import jax
 

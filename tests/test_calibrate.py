@@ -1,7 +1,12 @@
-"""Differentiable UCS tests (jdem.difflab) and calibration (jdem.calibrate).
+"""The pure UCS test (jdem.lab.curve) and calibration (jdem.calibrate).
 
-One ~106-disc specimen (4 mm x 8 mm) and one model serve every test, so the
+One ~106-disc specimen (4 mm x 8 mm) and one set-up serve every test, so the
 curve and its gradient compile once each.  float64 (tests/conftest.py).
+
+Speed: these tests exercise the gradient and the optimiser, not the rock, so
+they load 8x faster than the quasi-static default (``RATE``) and pass
+``require_quasi_static=False``; tests/test_lab.py checks the certificate that
+calibration demands by default.
 """
 import functools
 
@@ -10,15 +15,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jdem import InputError, difflab
+from jdem import InputError, lab
 from jdem import calibrate as cb
-from jdem import labtests as lt
+from jdem import materials as lt
 from jdem.specimen import generate
 
 SIZE = (0.004, 0.008)
 RADII = (0.2e-3, 0.35e-3)
 TRUE = dict(E=30e9, strength=3e6, kappa=3e-3)
-MAX_STRAIN = 2.2e-3
+MAX_STRAIN = 1.2e-3
+RATE = 3.2e-5                     # platen / wave speed: 8x the quasi-static default
 
 
 @functools.lru_cache(maxsize=None)
@@ -28,14 +34,21 @@ def specimen(seed):
 
 @functools.lru_cache(maxsize=None)
 def model_and_params():
-    return difflab.ucs_model(specimen(2), lt.rock_params(2, kappa=3e-3), max_strain=MAX_STRAIN)
+    su = lab.UCS.setup(specimen(2), lt.rock_params(2, kappa=3e-3), max_strain=MAX_STRAIN,
+                       loading_rate=RATE, stiffness_margin=2.0)
+    return su, su.params
+
+
+def _curve(hist):
+    return dict(strain=hist["axial_strain"], stress=hist["axial_stress"],
+                fracture_degree=hist["fracture_degree"])
 
 
 @functools.lru_cache(maxsize=None)
 def target_curve():
     model, params = model_and_params()
-    curve, _ = difflab.checked_curve(cb.material(params, TRUE), model)
-    return curve
+    hist, _ = lab.checked_curve(model, cb.material(params, TRUE))
+    return _curve(hist)
 
 
 # ----------------------------------------------------------------------------- the model
@@ -54,14 +67,21 @@ def test_ensemble_members_equal_single_runs():
     with its own parameter set (member 1: E 10 % higher), give each packing's own
     curve."""
     params0 = lt.rock_params(2, kappa=3e-3)
-    ens, pe = difflab.ucs_model([specimen(2), specimen(3)], params0, max_strain=MAX_STRAIN)
-    single, ps = difflab.ucs_model(specimen(3), params0, max_strain=MAX_STRAIN)
+    kw = dict(max_strain=MAX_STRAIN, loading_rate=RATE, stiffness_margin=2.0)
+    ens = lab.UCS.setup([specimen(2), specimen(3)], params0, **kw)
+    single = lab.UCS.setup(specimen(3), params0, dt=float(ens.params.dt),
+                           record_every=ens.plan.record_every, **kw)
+    # the ensemble's schedule (its ramp spans the taller member's transits)
+    single = single.replace(plan=single.plan.replace(n_records=ens.plan.n_records,
+                                                     ramp_records=ens.plan.ramp_records))
+    pe = ens.params
     assert ens.n_members == 2
     assert float(pe.dt) <= float(model_and_params()[1].dt) * (1 + 1e-12)
     p1 = cb.material(pe, dict(E=33e9))
     both = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), pe, p1)
-    ce, _ = difflab.checked_curve(both, ens)
-    cs, _ = difflab.checked_curve(p1, single)
+    ce, _ = lab.checked_curve(ens, both)
+    cs, _ = lab.checked_curve(single, p1)
+    ce, cs = _curve(ce), _curve(cs)
     n = min(ce["stress"].shape[-1], cs["stress"].shape[-1])
     k = int(np.argmax(cs["stress"][:n]))
     # The same arithmetic: in the elastic stage the member equals the single run to
@@ -82,8 +102,8 @@ GRAD_FIELDS = ("bond_youngs", "bond_poisson", "bond_tensile", "bond_cohesion",
 
 
 def _window_mean(params, model, n_rec):
-    out = difflab.simulate_curve(params, model)
-    return jnp.mean(out["stress"][:n_rec]) / 1e6
+    out = lab.curve(model, params).history
+    return jnp.mean(out["axial_stress"][:n_rec]) / 1e6
 
 
 def test_gradients_match_finite_differences_before_breakage():
@@ -91,7 +111,7 @@ def test_gradients_match_finite_differences_before_breakage():
     by jax.grad vs central differences (relative steps 3e-3 and 1e-3) for every
     bond parameter.  The run goes on to the peak and softening, but past the
     first break the events cascade and the response is no longer smooth (finite
-    differences then depend on their step; see jdem.difflab).  Before it, bonds
+    differences then depend on their step; see jdem.lab.damping).  Before it, bonds
     yield and soften (so eps_lim and gamma_lim act).  The response is piecewise
     smooth (every yield is a kink) and the gradient must be within 5 % of the
     difference at 3e-3 for every parameter.  The differences at 3e-3 and 1e-3 must
@@ -138,6 +158,25 @@ def test_gradients_finite_through_breakage():
         v = np.asarray(getattr(g, name))
         assert np.all(np.isfinite(v)), name
     assert float(g.bond_youngs) != 0.0 and float(g.bond_tensile) != 0.0
+
+
+def test_calibration_refuses_a_set_up_that_is_not_quasi_static():
+    """The old default of the differentiable test (5 nm per step on this
+    specimen, 1.1e-4 of the wave speed) is not quasi-static: calibration says so
+    and stops before fitting."""
+    fast = lab.UCS.setup(specimen(2), lt.rock_params(2, kappa=3e-3), max_strain=MAX_STRAIN,
+                         platen_step=5e-9)
+    with pytest.raises(InputError, match="not quasi-static"):
+        cb.calibrate(fast, target_curve(), dict(E=36e9), progress=False)
+
+
+def test_target_in_percent_or_mpa_is_refused():
+    e = np.linspace(0, 3e-3, 301)
+    s = 1e10 * e * np.exp(-e / 1e-3)
+    with pytest.raises(InputError, match="percent"):
+        cb.load_target((100 * e, s))
+    with pytest.raises(InputError, match="MPa"):
+        cb.load_target((e, s / 1e6))
 
 
 # ----------------------------------------------------------------------------- targets, loss
@@ -191,8 +230,8 @@ def test_material_and_bad_names():
         cb.material(p, {"Young": 1.0})
     model, params = model_and_params()
     with pytest.raises(InputError, match="outside its bounds"):
-        cb.calibrate(model, params, target_curve(), dict(E=30e9), bounds={"E": (1e9, 2e9)},
-                     progress=False)
+        cb.calibrate(model, target_curve(), dict(E=30e9), params=params,
+                     bounds={"E": (1e9, 2e9)}, progress=False)
 
 
 # ----------------------------------------------------------------------------- recovery
@@ -200,8 +239,9 @@ def test_calibration_recovers_fracture_strain(tmp_path):
     """kappa = eps_lim = gamma_lim from +50 % on the target's packing: within 15 %
     in at most 100 Adam steps; the result reopens from HDF5."""
     model, params = model_and_params()
-    res = cb.calibrate(model, params, target_curve(), dict(kappa=1.5 * TRUE["kappa"]),
-                       steps=100, progress=False, out=tmp_path / "cal.h5")
+    res = cb.calibrate(model, target_curve(), dict(kappa=1.5 * TRUE["kappa"]), params=params,
+                       steps=100, progress=False, out=tmp_path / "cal.h5",
+                       require_quasi_static=False)
     print(res.values, res.steps, res.loss)
     assert res.steps <= 100
     assert abs(res.values["kappa"] / TRUE["kappa"] - 1) < 0.15
@@ -240,9 +280,11 @@ def test_recovery_three_parameters_on_a_different_packing():
     With a 4x slower platen (1.25 nm, 40-record ramp) it stops after 45 steps at
     E -3.9 %, strength -18 %, kappa +158 % (loss 0.018)."""
     params0 = lt.rock_params(2, kappa=3e-3)
-    model, params = difflab.ucs_model(specimen(3), params0, max_strain=MAX_STRAIN)
+    model = lab.UCS.setup(specimen(3), params0, max_strain=MAX_STRAIN, loading_rate=RATE,
+                          stiffness_margin=2.0)
     start = dict(E=1.4 * TRUE["E"], strength=0.65 * TRUE["strength"], kappa=1.5 * TRUE["kappa"])
-    res = cb.calibrate(model, params, target_curve(), start, steps=100, progress=False)
+    res = cb.calibrate(model, target_curve(), start, steps=100, progress=False,
+                       require_quasi_static=False)
     print(res.values, res.steps, res.loss)
     assert abs(res.values["E"] / TRUE["E"] - 1) < 0.03
     assert abs(res.values["strength"] / TRUE["strength"] - 1) < 0.05

@@ -45,7 +45,7 @@ def test_undamped_elastic_packing_conserves_energy():
     packings: eight packings run as one batch, and their mean drift must stay
     below 1e-3, with no run straying from its initial energy by 1 %.
     """
-    from jdem.difflab import _stack_members
+    from jdem.batch import stack_states as _stack_members
 
     members = []
     for seed in range(1, 9):

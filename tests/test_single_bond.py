@@ -1,5 +1,5 @@
 """Single linked-bar bond through the engine (002 §1.3, Fig. 4-6): uniaxial
-tension and direct shear with ``jdem.labtests.single_bond_test`` (``jdem.run``:
+tension and direct shear with ``jdem.lab.single_bond.single_bond_test`` (``jdem.run``:
 prescribed velocities, an external normal load, local damping), in 3D and 2D;
 damage factors (eq 10); a vmapped sweep of eps_lim; ``jax.grad`` through
 ``jdem.rollout``.  The kinematic checks of the bond law itself live in
@@ -9,7 +9,7 @@ Seed values: R = 0.5 m, rho = 2500, E = 10 GPa, nu = 0.22, T0 = c0 = 3 MPa,
 phi = 30 deg, eps_lim = 0.1 %, gamma_lim = 0.3 %, sigma_n = 3 MPa.
 
 Runtime: every run of one dimension uses the same Config, the same observe
-function and the same chunk size (``labtests.CHUNK_STEPS``), so jdem.run
+function and the same chunk size (``single_bond.CHUNK_STEPS``), so jdem.run
 compiles its chunk once per dimension (plus once for the batched sweep and
 once for the gradient).
 """
@@ -21,7 +21,8 @@ import numpy as np
 import pytest
 
 import jdem
-from jdem import labtests as lt
+from jdem.lab import single_bond as lt
+from jdem.materials import seed_params
 
 E = 10e9
 NU = 0.22
@@ -41,7 +42,7 @@ RESID_SHEAR = SIG * TANPHI      # 1.732 MPa
 def result(mode, dim):
     """(history, state, config, params) of the default run, computed once per session."""
     h, s, c = lt.single_bond_test(mode, dim=dim)
-    return h, s, c, lt.seed_params(dim)
+    return h, s, c, seed_params(dim)
 
 
 def first_broken(h):
@@ -53,14 +54,14 @@ def first_broken(h):
 def test_seed_constants():
     assert abs(PEAK_SHEAR / 1e6 - 4.732) < 1e-3
     assert abs(RESID_SHEAR / 1e6 - 1.732) < 1e-3
-    p = lt.seed_params(3)
+    p = seed_params(3)
     assert float(p.bond_youngs) == E and float(p.bond_poisson) == NU
     assert float(p.bond_tensile) == T0 and float(p.bond_cohesion) == C0
     assert float(p.bond_tensile_strain) == EPS_LIM and float(p.bond_shear_strain) == GAM_LIM
 
 
 def test_analytic_curve():
-    p = lt.seed_params(3)
+    p = seed_params(3)
     eps = np.array([0.0, 1e-4, 3e-4, 6.5e-4, 1e-3, 1.2e-3])
     np.testing.assert_allclose(lt.analytic_single_bond_curve("tension", eps, p),
                                [0, 1e6, 3e6, 1.5e6, 0, 0], atol=1e-6)
@@ -152,7 +153,7 @@ def test_direct_shear(dim):
     # the pre-load settled: the first shear record carries sigma_n
     assert abs(sig_n[0] / SIG - 1) < 1e-6
     # it stays close to sigma_n while the bond turns by theta ~ gamma (see the
-    # labtests module docstring: F_n = (sigma A - |F_s| sin theta) / cos theta)
+    # single_bond module docstring: F_n = (sigma A - |F_s| sin theta) / cos theta)
     theta = np.arcsin(np.clip((h["upper_pos"][:, 0]) / np.linalg.norm(h["upper_pos"], axis=1),
                               -1, 1))
     fn_expect = (SIG - tau * np.sin(theta)) / np.cos(theta)
@@ -221,7 +222,7 @@ def test_batched_eps_lim_sweep():
     """8 values of eps_lim as one vmapped jdem.run call; 2 checked against separate runs."""
     dim = 2
     eps_lims = np.linspace(0.6e-3, 1.4e-3, 8)
-    base = lt.seed_params(dim)
+    base = seed_params(dim)
     params = jdem.broadcast_batch(base, len(eps_lims))._replace(
         bond_tensile_strain=jnp.asarray(eps_lims))
     max_strain = 1.15 * eps_lims.max()

@@ -2,8 +2,8 @@
 plots, bad input, and a sweep sharded over 4 host devices.
 
 Runtime: one 164-disc specimen (0.5 cm x 1 cm) serves every sweep; the
-loading (3 nm per step to 0.15 % strain, 6,000 steps) passes the peak of
-every member.  Three compiled batch shapes: 4 members (the default sweep), 1
+loading (3 nm per step to 0.15 % strain after the ramp, about 6,500 steps,
+the seed's local damping 0.8) passes the peak of every member.  Three compiled batch shapes: 4 members (the default sweep), 1
 member (the reference of the sharded run) and, in a subprocess with 4 host
 devices, 4 members sharded one per device.
 
@@ -27,7 +27,8 @@ import numpy as np
 import pytest
 
 from jdem import InputError
-from jdem import labtests as lt
+from jdem import lab
+from jdem import materials as lt
 from jdem import sweep as sw
 from jdem.specimen import generate
 from jdem.state import Bonds, Particles
@@ -37,9 +38,9 @@ RADII = (0.2e-3, 0.35e-3)      # [m]
 SEED = 2
 N_BAR = 4.5
 EPS_LIMS = (1e-3, 4e-3)
-T0S = (2e6, 4e6)               # [Pa]
-RUN = dict(platen_step=3e-9, max_strain=1.5e-3, chunk_steps=1000, record_every=50,
-           progress=False)
+STRENGTHS = (2e6, 4e6)         # [Pa] T0 = c0 (the tied "strength")
+RUN = dict(platen_step=3e-9, max_strain=1.5e-3, record_every=50, progress=False)
+ALPHA = 0.8                    # the seed's local damping (002 §2.1), as these sweeps ran before
 
 
 @pytest.fixture(scope="module")
@@ -54,13 +55,13 @@ def base():
 
 @pytest.fixture(scope="module")
 def samples():
-    return sw.grid(eps_lim=EPS_LIMS, T0=T0S)
+    return sw.grid(eps_lim=EPS_LIMS, strength=STRENGTHS)
 
 
 @pytest.fixture(scope="module")
 def table(specimen, base, samples):
     """The 2 x 2 sweep in one vmapped batch of 4."""
-    return sw.sweep(specimen, base, samples, shard=False, **RUN)
+    return sw.sweep(specimen, base, samples, shard=False, damping=lab.local(ALPHA), **RUN)
 
 
 # ----------------------------------------------------------------------------- samples
@@ -135,41 +136,45 @@ def test_layout_pads_to_the_device_count():
 def test_sweep_table_shapes_and_attributes(table, specimen):
     n = 4
     r = int(table["n_records"][0])
-    for key in ("eps_lim", "T0", "peak_stress", "youngs_modulus", "critical_strain",
+    for key in ("eps_lim", "strength", "peak_stress", "youngs_modulus", "critical_strain",
                 "fracture_degree_at_peak", "fracture_degree_end", "n_records"):
         assert table[key].shape == (n,), key
         assert np.all(np.isfinite(table[key])), key
     assert table["strain"].shape == (n, r) and table["stress"].shape == (n, r)
     np.testing.assert_array_equal(table["n_records"], r)
     np.testing.assert_array_equal(table["eps_lim"], [1e-3, 1e-3, 4e-3, 4e-3])
-    np.testing.assert_array_equal(table["T0"], [2e6, 4e6, 2e6, 4e6])
+    np.testing.assert_array_equal(table["strength"], [2e6, 4e6, 2e6, 4e6])
     a = table.attrs
-    assert a["test"] == "ucs" and a["parameters"] == ["eps_lim", "T0"]
+    assert a["test"] == "ucs" and a["parameters"] == ["eps_lim", "strength"]
     assert a["n_devices"] == 1 and a["batch_size"] == 4 and a["n_batches"] == 1
     assert a["n_particles"] == int(np.sum(np.asarray(specimen.particles.valid)))
     assert a["wall_time"] > 0 and a["steps"] == r * RUN["record_every"]
-    # one time step for the sweep: what platen_setup picks for the batch (all samples)
-    params = sw._batched_params(lt.rock_params(2, kappa=3e-3), sw.grid(eps_lim=EPS_LIMS, T0=T0S), 4)
-    su = lt.platen_setup(specimen, params, platen_step=RUN["platen_step"])
+    assert a["damping"] == str(lab.local(ALPHA))
+    # one time step for the sweep: what the UCS set-up picks for the batch (all samples)
+    params = sw._batched_params(lt.rock_params(2, kappa=3e-3),
+                                sw.grid(eps_lim=EPS_LIMS, strength=STRENGTHS), 4)
+    su = lab.UCS.setup(specimen, params, platen_step=RUN["platen_step"],
+                       max_strain=RUN["max_strain"], record_every=RUN["record_every"],
+                       damping=lab.local(ALPHA))
     assert a["dt"] == float(su.params.dt[0])
-    n_steps = math.ceil(RUN["max_strain"] * su.frame.h0 / RUN["platen_step"]
-                        / RUN["chunk_steps"]) * RUN["chunk_steps"]
-    assert r == n_steps // RUN["record_every"] and a["steps"] == n_steps
+    assert r == su.plan.n_records and a["steps"] == su.plan.n_records * RUN["record_every"]
+    # the strain reached: max_strain past the ramp (within one record's platen travel)
+    assert RUN["max_strain"] <= table["strain"][0, -1] < RUN["max_strain"] * 1.05
     # the curves are the platen history, and the summary is peak_summary's
     k = np.argmax(table["stress"], axis=1)
     np.testing.assert_array_equal(table["peak_stress"], table["stress"][np.arange(n), k])
     np.testing.assert_array_equal(table["critical_strain"], table["strain"][np.arange(n), k])
 
 
-def test_sweep_peak_stress_rises_with_T0(table):
+def test_sweep_peak_stress_rises_with_strength(table):
     """Every member peaks inside the run (then softens), and for each eps_lim
-    the peak stress is higher with T0 = 4 MPa than with 2 MPa."""
+    the peak stress is higher with T0 = c0 = 4 MPa than with 2 MPa."""
     stress = table["stress"]
     k = np.argmax(stress, axis=1)
     assert np.all(k < stress.shape[1] - 5)
     assert np.all(stress[:, -1] < 0.8 * table["peak_stress"])
     assert np.all(table["peak_stress"] > 1e6)
-    peak = table["peak_stress"].reshape(len(EPS_LIMS), len(T0S))     # grid order
+    peak = table["peak_stress"].reshape(len(EPS_LIMS), len(STRENGTHS))     # grid order
     assert np.all(peak[:, 1] > 1.1 * peak[:, 0])
 
 
@@ -182,7 +187,7 @@ def test_save_load_round_trip(table, tmp_path):
         assert back[key].dtype == np.asarray(table[key]).dtype, key
         np.testing.assert_array_equal(back[key], table[key], err_msg=key)
     assert back.attrs == table.attrs
-    assert back.parameters == ["eps_lim", "T0"]
+    assert back.parameters == ["eps_lim", "strength"]
     with pytest.raises(FileNotFoundError):
         sw.load_sweep(tmp_path / "missing.h5")
     with pytest.raises(InputError, match="not a sweep table"):
@@ -193,14 +198,15 @@ def test_save_load_round_trip(table, tmp_path):
 
 
 def test_plot_sweep_heat_map_and_line(table, tmp_path):
-    ax = sw.plot_sweep(table, "eps_lim", "T0", value="peak_stress", path=tmp_path / "heat.png")
+    ax = sw.plot_sweep(table, "eps_lim", "strength", value="peak_stress",
+                       path=tmp_path / "heat.png")
     assert (tmp_path / "heat.png").stat().st_size > 5_000
-    assert ax.images and ax.images[0].get_array().shape == (len(T0S), len(EPS_LIMS))
+    assert ax.images and ax.images[0].get_array().shape == (len(STRENGTHS), len(EPS_LIMS))
     cells = np.asarray(ax.images[0].get_array())
     np.testing.assert_allclose(cells.T.ravel(), table["peak_stress"] * 1e-6)
-    ax = sw.plot_sweep(table, "T0", value="critical_strain", path=tmp_path / "line.png")
+    ax = sw.plot_sweep(table, "strength", value="critical_strain", path=tmp_path / "line.png")
     assert (tmp_path / "line.png").stat().st_size > 5_000
-    assert len(ax.collections) == 1           # repeated T0 values: a scatter
+    assert len(ax.collections) == 1           # repeated strength values: a scatter
     with pytest.raises(InputError, match="'bogus' is not a column"):
         sw.plot_sweep(table, "bogus")
 
@@ -214,13 +220,13 @@ def test_plot_sweep_heat_map_and_line(table, tmp_path):
     ({"T0": [1e6, 2e6], "eps_lim": [1e-3]}, {}, r"samples\['eps_lim'\] has 1 values, the others 2"),
     ({"kappa": [1e-3], "eps_lim": [1e-3]}, {}, r"'kappa' and 'eps_lim' both set"),
     ({}, {}, "non-empty dict"),
-    ({"T0": [1e6]}, {"test": "triaxial"}, r"test must be one of .* got 'triaxial'"),
-    ({"T0": [1e6]}, {"test": "biaxial"}, r"needs confining_stress > 0"),
-    ({"T0": [1e6]}, {"confining_stress": 1e6}, r"confining_stress = 1000000.0 applies to"),
+    ({"T0": [1e6]}, {"test": "triax"}, r"test must be a jdem.lab test or one of .* got 'triax'"),
+    ({"T0": [1e6]}, {"test": lab.BIAXIAL}, r"needs confining_stress"),
+    ({"T0": [1e6]}, {"confining_stress": 1e6}, r"free sides: use jdem.lab.BIAXIAL"),
     ({"T0": [1e6]}, {"batch_size": 0}, r"batch_size must be an integer >= 1, got 0"),
-    ({"T0": [1e6]}, {"platen_step": -1e-9}, r"platen_step must be one length > 0"),
+    ({"T0": [1e6]}, {"platen_step": -1e-9}, r"platen_step must be a length > 0"),
     ({"T0": [1e6]}, {"max_strain": 0.0}, r"max_strain must be > 0, got 0.0"),
-    ({"T0": [1e6]}, {"record_every": 7}, r"record_every = 7 must divide"),
+    ({"T0": [1e6]}, {"record_every": 0}, r"record_every must be >= 1, got 0"),
 ])
 def test_bad_input_names_field_and_value(specimen, base, samples, kw, match):
     with pytest.raises(InputError, match=match):
@@ -238,7 +244,7 @@ SCRIPT = textwrap.dedent("""
     import jax
     jax.config.update("jax_enable_x64", True)
     import numpy as np
-    from jdem import labtests as lt, sweep as sw
+    from jdem import lab, materials as lt, sweep as sw
     from jdem.state import Bonds, Particles
 
     assert len(jax.devices()) == 4, jax.devices()
@@ -246,7 +252,8 @@ SCRIPT = textwrap.dedent("""
     d = np.load(spec_path)
     spec = (Particles(**{k: d["p_" + k] for k in Particles._fields}),
             Bonds(**{k: d["b_" + k] for k in Bonds._fields}))
-    samples = sw.grid(eps_lim=run.pop("eps_lims"), T0=run.pop("t0s"))
+    samples = sw.grid(eps_lim=run.pop("eps_lims"), strength=run.pop("strengths"))
+    run["damping"] = lab.local(run.pop("alpha"))
     table = sw.sweep(spec, lt.rock_params(2, kappa=3e-3), samples, shard=True, out=out, **run)
     assert table.attrs["n_devices"] == 4
 """)
@@ -261,7 +268,7 @@ def four_device_table(specimen, tmp_path_factory):
     np.savez(spec_path, **{f"p_{k}": np.asarray(v) for k, v in specimen.particles._asdict().items()},
              **{f"b_{k}": np.asarray(v) for k, v in specimen.bonds._asdict().items()})
     out = tmp / "sweep4.h5"
-    run = dict(RUN, eps_lims=list(EPS_LIMS), t0s=list(T0S))
+    run = dict(RUN, eps_lims=list(EPS_LIMS), strengths=list(STRENGTHS), alpha=ALPHA)
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
                JAX_PLATFORMS="cpu")
     proc = subprocess.run([sys.executable, "-c", SCRIPT, str(spec_path), str(out), json.dumps(run)],
@@ -285,7 +292,8 @@ def test_sweep_on_4_devices_matches_1_device(specimen, base, samples, table, fou
     time step, the parameters and the strains are equal, and the differences of
     the stresses (amplified round-off) are printed."""
     t4 = four_device_table
-    t1 = sw.sweep(specimen, base, samples, shard=False, batch_size=1, **RUN)
+    t1 = sw.sweep(specimen, base, samples, shard=False, batch_size=1, damping=lab.local(ALPHA),
+                  **RUN)
     assert t4.attrs["n_devices"] == 4 and t1.attrs["n_devices"] == 1
     assert t4.attrs["batch_size"] == 4 and t1.attrs["batch_size"] == 1
     assert t4.attrs["dt"] == t1.attrs["dt"] == table.attrs["dt"]
@@ -296,7 +304,7 @@ def test_sweep_on_4_devices_matches_1_device(specimen, base, samples, table, fou
         worst[key] = _max_rel(t4[key], t1[key])
     print("\n4 devices vs 1 device (batch 1), max relative difference:", worst)
     assert max(worst.values()) <= 1e-9, worst
-    for key in ("eps_lim", "T0", "strain", "n_records"):
+    for key in ("eps_lim", "strength", "strain", "n_records"):
         np.testing.assert_array_equal(t4[key], table[key], err_msg=key)
     # against the default 4-member batch: amplified round-off (module docstring)
     print("4 devices vs 1 device (batch 4):",

@@ -1,0 +1,135 @@
+"""Key figures of a lab-test history, and how far a curve is from quasi-static.
+
+* :func:`fit_modulus` -- the one secant-modulus fit: least-squares slope of
+  stress against strain over the pre-peak records with 10 %..40 % of the peak.
+* :func:`peak_summary` -- peak stress, critical strain, modulus, Poisson ratio,
+  fracture degree, and the in-run quasi-static indicator.
+* The quasi-static certificate (000 §2.3, §3.2: dynamic relaxation seeks the
+  static solution; the curve should not depend on how fast it was reached):
+  :func:`kinetic_ratio` is the cheap in-run indicator (kinetic over strain
+  energy on the loading branch up to the peak), :func:`certify` the decisive
+  check (the change of peak stress and modulus when the loading rate is halved).
+"""
+from __future__ import annotations
+
+import warnings
+from typing import NamedTuple
+
+import numpy as np
+
+from jdem.batch import member
+
+MODULUS_WINDOW = (0.1, 0.4)   #: fraction of the peak stress between which the modulus is fitted
+QUASI_STATIC_TOLERANCE = 0.02  #: peak and modulus may change this much at half the rate
+#: in-run indicator above which a run is reported as dynamic (see :func:`kinetic_ratio`)
+KINETIC_RATIO_WARNING = 1e-2
+
+
+def fit_modulus(strain, stress, *, window=MODULUS_WINDOW, min_points=3):
+    """Least-squares slope [Pa] of ``stress`` vs ``strain`` (R,) over the records
+    up to the peak whose stress lies in ``window`` x the peak (NaN if fewer than
+    ``min_points`` records do).  Returns ``(modulus, (strain_lo, strain_hi))``."""
+    strain = np.asarray(strain, np.float64)
+    stress = np.asarray(stress, np.float64)
+    k = int(np.argmax(stress))
+    peak = float(stress[k])
+    s, e = stress[:k + 1], strain[:k + 1]
+    sel = (s >= window[0] * peak) & (s <= window[1] * peak)
+    if sel.sum() < min_points:
+        return float("nan"), (float("nan"), float("nan"))
+    return float(np.polyfit(e[sel], s[sel], 1)[0]), (float(e[sel].min()), float(e[sel].max()))
+
+
+def kinetic_ratio(history) -> float:
+    """The in-run quasi-static indicator of one (unbatched) history: the largest
+    kinetic / strain energy ratio (``kinetic_ratio`` records) on the loading
+    branch, from 10 % of the peak stress up to the peak."""
+    stress = np.asarray(history["axial_stress"], np.float64)
+    ratio = np.asarray(history["kinetic_ratio"], np.float64)
+    k = int(np.argmax(stress))
+    sel = stress[:k + 1] >= 0.1 * stress[k]
+    return float(np.max(ratio[:k + 1][sel])) if sel.any() else float("nan")
+
+
+def peak_summary(history: dict, *, window=MODULUS_WINDOW) -> dict:
+    """Key figures of a compression (or tension) curve; a batched history gives
+    arrays over its members.
+
+    peak_stress              largest axial stress [Pa]
+    critical_strain          axial strain at the peak (002 §2.2)
+    youngs_modulus           :func:`fit_modulus` [Pa]
+    poisson_ratio            -d(lateral strain)/d(axial strain) over the same records
+    fracture_degree_at_peak, fracture_degree_end
+    final_stress             axial stress of the last record
+    peak_index, peak_step
+    kinetic_ratio            :func:`kinetic_ratio`
+    tensile_strength         Brazilian histories: 2 P_peak / (pi D t) [Pa]
+    """
+    stress = np.asarray(history["axial_stress"])
+    if stress.ndim == 2:
+        rows = [peak_summary(member(history, b), window=window) for b in range(stress.shape[0])]
+        return {k: np.asarray([r[k] for r in rows]) for k in rows[0]}
+    strain = np.asarray(history["axial_strain"])
+    k = int(np.argmax(stress))
+    peak = float(stress[k])
+    modulus, _ = fit_modulus(strain, stress, window=window)
+    nu = float("nan")
+    if "lateral_strain" in history:
+        lat = np.asarray(history["lateral_strain"])
+        s = stress[:k + 1]
+        sel = (s >= window[0] * peak) & (s <= window[1] * peak)
+        if sel.sum() >= 3:
+            nu = float(-np.polyfit(strain[:k + 1][sel], lat[:k + 1][sel], 1)[0])
+    fd = np.asarray(history["fracture_degree"])
+    out = dict(peak_stress=peak, critical_strain=float(strain[k]), youngs_modulus=modulus,
+               poisson_ratio=nu, fracture_degree_at_peak=float(fd[k]),
+               fracture_degree_end=float(fd[-1]), final_stress=float(stress[-1]),
+               peak_index=k, peak_step=int(np.asarray(history["step"])[k]),
+               kinetic_ratio=kinetic_ratio(history))
+    if "tensile_strength_indirect" in history:
+        out["tensile_strength"] = float(np.max(history["tensile_strength_indirect"]))
+    return out
+
+
+def warn_if_dynamic(history: dict, name: str = "lab test"):
+    """Warn when a history's in-run indicator exceeds ``KINETIC_RATIO_WARNING``."""
+    stress = np.asarray(history["axial_stress"])
+    members = [member(history, b) for b in range(stress.shape[0])] if stress.ndim == 2 \
+        else [history]
+    worst = max(kinetic_ratio(h) for h in members)
+    if np.isfinite(worst) and worst > KINETIC_RATIO_WARNING:
+        warnings.warn(f"{name}: kinetic / strain energy reached {worst:.3g} before the peak "
+                      f"(> {KINETIC_RATIO_WARNING:g}): the curve is probably not quasi-static; "
+                      f"lower loading_rate and check with jdem.lab.certify", stacklevel=3)
+    return worst
+
+
+class Certificate(NamedTuple):
+    """How far a test is from the quasi-static limit (:func:`certify`).
+
+    peak_change, modulus_change   relative change of the peak stress and of the
+                                  modulus (:func:`fit_modulus`) from the test's rate
+                                  to ``1 / factor`` of it (one value, or per member)
+    kinetic_ratio                 the in-run indicator at the test's rate
+    quasi_static                  both changes below ``tolerance`` (every member)
+    loading_rate                  platen speed / wave speed of the test
+    summary, slow_summary         :func:`peak_summary` at the rate and slower
+    """
+
+    peak_change: object
+    modulus_change: object
+    kinetic_ratio: object
+    quasi_static: bool
+    tolerance: float
+    loading_rate: float
+    summary: dict
+    slow_summary: dict
+
+    def __str__(self):
+        pc = np.max(np.abs(self.peak_change))
+        mc = np.max(np.abs(self.modulus_change))
+        verdict = "quasi-static" if self.quasi_static else "NOT quasi-static"
+        return (f"{verdict} at loading rate {self.loading_rate:.3g} (platen / wave speed): "
+                f"peak {100 * pc:.2f} %, modulus {100 * mc:.2f} % from the half-rate run "
+                f"(tolerance {100 * self.tolerance:g} %), kinetic / strain energy "
+                f"{np.max(self.kinetic_ratio):.2g}")
