@@ -413,7 +413,7 @@ def test_direct_tension_peaks_near_the_bond_strength_and_breaks():
     make the macro strength lower), then the specimen splits (the stress falls,
     bonds break mostly in tension); the pure curve equals the host loop."""
     params = rock_params(2, kappa=3e-3)
-    setup = lab.TENSION.setup(_demo_spec(), params, max_strain=5e-4, loading_rate=3.2e-5)
+    setup = lab.TENSION.setup(_demo_spec(), params, max_strain=5e-4, loading_rate=1.6e-5)
     host = _pure_equals_host(setup)
     s = lab.peak_summary(host)
     assert 0.3e6 < s["peak_stress"] < 3e6
