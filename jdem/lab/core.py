@@ -410,11 +410,12 @@ def _check_timestep(setup: Setup, params):
         check_timestep(setup.state, params, setup.plan.config)
 
 
-def n_records_for(strain, h0, step_per_record, ramp_records, preload_records=0):
-    """Records to reach ``strain`` at ``step_per_record`` metres per record at full
-    speed after a ramp of ``ramp_records`` (which covers half its length)."""
-    full = float(strain) * float(h0) / float(step_per_record)
-    return int(preload_records + math.ceil(full + 0.5 * ramp_records))
+def n_records_for(load_steps, record_every, ramp_records, preload_records=0):
+    """Records of a run whose loading needs ``load_steps`` steps at full speed,
+    after a ramp of ``ramp_records`` (which covers half its length, so half a
+    ramp more is run) and a preload of ``preload_records``."""
+    return int(preload_records + math.ceil(float(load_steps) / record_every
+                                           + 0.5 * ramp_records))
 
 
 def stack_setups(setups) -> Setup:

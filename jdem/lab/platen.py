@@ -36,7 +36,7 @@ from jdem import bond as bond_mod
 from jdem import measure, timestep
 from jdem.batch import broadcast_batch, is_batched, member, stack_states
 from jdem.lab import damping as damping_mod
-from jdem.lab.core import LabTest, Plan, Setup, ramp
+from jdem.lab.core import LabTest, Plan, Setup, n_records_for, ramp
 from jdem.materials import PLATEN
 from jdem.simulate import make_state
 from jdem.specimen import as_arrays
@@ -412,8 +412,7 @@ def platen_setup(test: LabTest, specimens, params, *, max_strain=3e-3, loading_r
     record_every = int(record_every)
     ramp_records = int(math.ceil(ramp_steps / record_every))
     pre_records = int(math.ceil(pre_steps / record_every))
-    # the ramp covers half its length: half a ramp more at full speed
-    n_records = pre_records + int(math.ceil(load_steps / record_every + 0.5 * ramp_records))
+    n_records = n_records_for(load_steps, record_every, ramp_records, pre_records)
 
     frames = []
     for k, (particles, info, state, config, h_box, widths, n_lat) in enumerate(built):

@@ -181,7 +181,7 @@ def setup(specimen, params, *, max_strain=1e-3, loading_rate=None, damping=None,
         record_every = max(1, int((load_steps + 0.5 * ramp_steps) / DEFAULT_RECORDS))
     record_every = int(record_every)
     ramp_records = int(math.ceil(ramp_steps / record_every))
-    n_records = n_records_for(max_strain, h0, speed * dt * record_every, ramp_records)
+    n_records = n_records_for(load_steps, record_every, ramp_records)
     widths = [extent(particles, a)[1] - extent(particles, a)[0] for a in range(dim - 1)]
     dtype = jnp.asarray(params.dt).dtype
     frame = GripFrame(
