@@ -1,29 +1,29 @@
-"""Calibration of micro-parameters against stress-strain curves, and batched sweeps.
+"""Calibration of micro-parameters against laboratory curves and figures.
 
-* Named material parameters (:data:`jdem.materials.PARAMETERS`,
-  :func:`jdem.materials.material`) are set on ``Params`` consistently.
-* :func:`load_target` reads a target curve (arrays, a dict, a CSV file).
-* :func:`curve_loss` compares a simulated curve with a target sampled at other
-  strains: interpolation onto common strains, weighting of the pre-peak and
-  post-peak parts, peak-stress and modulus terms.
-* :func:`calibrate` fits chosen parameters with an optax optimiser (Adam) through
-  ``jax.grad`` of the pure lab test (:func:`jdem.lab.curve`, the same
-  definition a production run uses), in a bounded log space, with early
-  stopping; the result saves to HDF5.  With a set-up built on several packings
-  (an ensemble) the loss is averaged over them.  The set-up must be
-  quasi-static (:func:`jdem.lab.certify`): calibration refuses one that is not,
-  unless ``require_quasi_static=False``.
-* Batched parameter sweeps of the platen tests live in :mod:`jdem.sweep`
-  (which uses :func:`material` here).
+:func:`calibrate` fits named parameters (:data:`jdem.materials.PARAMETERS`:
+``E`` [Pa], ``nu``, ``T0``, ``c0`` [Pa], ``phi`` [rad], ``eps_lim``,
+``gamma_lim`` and the tied pairs ``strength`` (T0 = c0) and ``kappa``
+(eps_lim = gamma_lim, 002 §2.1)) so that the pure lab tests
+(:func:`jdem.lab.curve`, the same definition a production run uses) reproduce
+one or several targets (:mod:`jdem.targets`: curves and scalar figures).
 
-Named parameters (``PARAMETERS``): ``E`` bond Young's modulus [Pa], ``nu``,
-``T0`` tensile strength [Pa], ``c0`` cohesion [Pa], ``phi`` friction angle
-[rad], ``eps_lim`` / ``gamma_lim`` tensile / shear fracture strains, and the
-tied pairs ``strength`` (T0 = c0) and ``kappa`` (eps_lim = gamma_lim, 002 §2.1).
+* Least squares on the residual vector of every target, in a bounded
+  transformed space (value = lo (hi/lo)^sigmoid(u), linear when lo <= 0).
+* Solvers: Levenberg-Marquardt (default) or Gauss-Newton from optimistix, with
+  the Jacobian by forward mode (``jax.linearize``; chosen for k <= 8 fitted
+  parameters) or reverse mode; Adam from optax as a first-order alternative.
+* The set-ups must be quasi-static (:func:`jdem.lab.certify`), or the fit
+  describes the loading rate, not the rock.
+* An ensemble set-up (several packings, one vmapped run) contributes each
+  member's residuals; a member that diverges is reported and its residuals
+  count as a 100 % misfit, so the solver steps back instead of stopping.
+* Every iteration is written to a checkpoint; ``resume=`` continues from it.
+* At the optimum: standard errors, 95 % intervals and the correlation matrix from
+  the Gauss-Newton approximation, and the parameters the data do not determine.
 """
 from __future__ import annotations
 
-import csv
+import functools
 import math
 import pathlib
 import time
@@ -33,147 +33,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jdem import lab
-from jdem import io
-from jdem.lab.summary import fit_modulus
+from jdem import io, lab
 from jdem.materials import PARAMETERS, check_names, material, rock_params, values_of  # noqa: F401
 from jdem.specimen import generate
 from jdem.state import Params
+from jdem.targets import (LossWeights, Scalar, Target, check_scalar, curve_loss,  # noqa: F401
+                          curve_residuals, load_target, scalar_residuals)
 from jdem.validate import InputError
 
-#: default bounds as factors of the starting value (log space), or absolute
+#: default bounds, absolute; other parameters get start / 5 .. start x 5 (log space)
 DEFAULT_BOUNDS = {"nu": (0.0, 0.45), "phi": (0.0, np.deg2rad(60.0))}
 DEFAULT_FACTOR = 5.0
-_check_names = check_names
-
-
-# ----------------------------------------------------------------------------- target curves
-class Target(NamedTuple):
-    """A target curve and its key figures (NumPy; strain ascending).
-
-    strain, stress    (K,) [-], [Pa]
-    peak_stress, peak_strain
-    modulus           least-squares slope over 10 %..40 % of the peak, pre-peak
-    modulus_window    (lo, hi) strains of that fit
-    """
-
-    strain: np.ndarray
-    stress: np.ndarray
-    peak_stress: float
-    peak_strain: float
-    modulus: float
-    modulus_window: tuple
-
-
-def load_target(source, *, strain_column=0, stress_column=1) -> Target:
-    """A :class:`Target` from ``(strain, stress)`` arrays, a dict with ``strain``
-    and ``stress`` (e.g. a simulated curve or history; ``axial_strain`` /
-    ``axial_stress`` also work), or a CSV file of two columns (strain, stress in
-    Pa; a header line is allowed).  Malformed input raises ``InputError``."""
-    if isinstance(source, (str, pathlib.Path)):
-        strain, stress = _read_csv(pathlib.Path(source), strain_column, stress_column)
-    elif isinstance(source, dict):
-        key_e = "strain" if "strain" in source else "axial_strain"
-        key_s = "stress" if "stress" in source else "axial_stress"
-        if key_e not in source or key_s not in source:
-            raise InputError(f"target dict needs 'strain' and 'stress', got keys {sorted(source)}")
-        strain, stress = source[key_e], source[key_s]
-    else:
-        try:
-            strain, stress = source
-        except (TypeError, ValueError):
-            raise InputError("target must be (strain, stress) arrays, a dict or a CSV path, "
-                             f"got {type(source).__name__}") from None
-    strain = np.asarray(strain, np.float64).ravel()
-    stress = np.asarray(stress, np.float64).ravel()
-    if strain.shape != stress.shape:
-        raise InputError(f"target strain and stress differ in length: {strain.size} vs "
-                         f"{stress.size}")
-    if strain.size < 5:
-        raise InputError(f"target curve needs at least 5 points, got {strain.size}")
-    for name, a in (("strain", strain), ("stress", stress)):
-        if not np.all(np.isfinite(a)):
-            k = int(np.argmin(np.isfinite(a)))
-            raise InputError(f"target {name}[{k}] = {a[k]!r} is not finite")
-    if np.any(np.diff(strain) <= 0):
-        k = int(np.argmin(np.diff(strain) > 0))
-        raise InputError(f"target strain must increase: strain[{k + 1}] = {strain[k + 1]!r} "
-                         f"after {strain[k]!r}")
-    k = int(np.argmax(stress))
-    peak = float(stress[k])
-    if not peak > 0:
-        raise InputError(f"target stress has no positive peak (max {peak!r})")
-    if float(np.max(np.abs(strain))) > 0.2:
-        raise InputError(f"target strain reaches {float(np.max(np.abs(strain)))!r}: strain is "
-                         f"dimensionless (0.003, not 0.3 %); divide a percent column by 100")
-    if peak < 1e4:
-        raise InputError(f"target peak stress is {peak!r} Pa: stress must be in Pa "
-                         f"(this looks like MPa: multiply by 1e6)")
-    modulus, window = fit_modulus(strain, stress, min_points=2)
-    if not np.isfinite(modulus):
-        modulus, window = peak / max(float(strain[k]), 1e-300), (0.0, float(strain[k]))
-    return Target(strain, stress, peak, float(strain[k]), modulus, window)
-
-
-def _read_csv(path, ce, cs):
-    if not path.exists():
-        raise InputError(f"target file {str(path)!r} does not exist")
-    rows = []
-    with open(path, newline="") as f:
-        for n, row in enumerate(csv.reader(f)):
-            if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
-                continue
-            try:
-                rows.append((float(row[ce]), float(row[cs])))
-            except ValueError:
-                if rows:   # only the first line may be a header
-                    raise InputError(f"{path}: line {n + 1} is not two numbers: {row!r}") from None
-            except IndexError:
-                raise InputError(f"{path}: line {n + 1} has {len(row)} column(s), need "
-                                 f"{max(ce, cs) + 1}: {row!r}") from None
-    if not rows:
-        raise InputError(f"{path} holds no (strain, stress) rows")
-    a = np.asarray(rows)
-    return a[:, 0], a[:, 1]
-
-
-# ----------------------------------------------------------------------------- loss
-class LossWeights(NamedTuple):
-    """Weights of :func:`curve_loss` (each term is dimensionless)."""
-
-    pre_peak: float = 1.0
-    post_peak: float = 1.0
-    peak: float = 1.0
-    modulus: float = 1.0
-
-
-def curve_loss(strain, stress, target: Target, weights: LossWeights = LossWeights()):
-    """Mismatch of a simulated curve ``(strain, stress)`` (R,) with ``target``.
-
-    The simulated stress is interpolated (linearly) onto the target strains
-    inside the simulated range; the squared differences, divided by the target
-    peak squared, are averaged with weight ``pre_peak`` up to the target's peak
-    strain and ``post_peak`` after it.  Added: ``peak`` x (relative peak-stress
-    error)^2 and ``modulus`` x (relative error of the slope over the target's
-    10 %..40 % window)^2.  Differentiable in ``stress``; works on one curve
-    (use ``jax.vmap`` for several).
-    """
-    et = jnp.asarray(target.strain)
-    st = jnp.asarray(target.stress)
-    inside = (et >= strain[0]) & (et <= strain[-1])
-    sim = jnp.interp(et, strain, stress)
-    w = jnp.where(et <= target.peak_strain, weights.pre_peak, weights.post_peak) * inside
-    curve = jnp.sum(w * (sim - st) ** 2) / jnp.maximum(jnp.sum(w), 1e-300) / target.peak_stress**2
-    peak = (jnp.max(stress) / target.peak_stress - 1.0) ** 2
-    lo, hi = target.modulus_window
-    sel = (strain >= lo) & (strain <= hi)
-    n = jnp.maximum(jnp.sum(sel), 1)
-    em = jnp.sum(jnp.where(sel, strain, 0.0)) / n
-    sm = jnp.sum(jnp.where(sel, stress, 0.0)) / n
-    slope = (jnp.sum(jnp.where(sel, (strain - em) * (stress - sm), 0.0))
-             / jnp.maximum(jnp.sum(jnp.where(sel, (strain - em) ** 2, 0.0)), 1e-300))
-    modulus = (slope / target.modulus - 1.0) ** 2
-    return curve + weights.peak * peak + weights.modulus * modulus
+#: forward-mode Jacobians up to this many fitted parameters, reverse mode beyond
+FORWARD_MODE_MAX = 8
+METHODS = ("lm", "gauss_newton", "adam")
 
 
 # ----------------------------------------------------------------------------- bounded transform
@@ -205,18 +78,110 @@ def _to_internal(v, lo, hi):
     return math.log(s / (1.0 - s))
 
 
-# ----------------------------------------------------------------------------- calibrate
+def _log_space(lo):
+    return lo > 0
+
+
+def _dscale_du(u, lo, hi):
+    """d(ln value)/du for log-space bounds, d(value)/du for linear ones."""
+    s = 1.0 / (1.0 + math.exp(-u))
+    return (math.log(hi / lo) if lo > 0 else hi - lo) * s * (1.0 - s)
+
+
+# ----------------------------------------------------------------------------- the problem
+class Term(NamedTuple):
+    """One simulated test and what it is compared with: a :class:`Target` curve
+    or a tuple of :class:`Scalar` figures."""
+
+    setup: lab.Setup
+    target: object
+    weights: LossWeights
+
+
+def _terms(setup, target, weights) -> list[Term]:
+    setups = list(setup) if isinstance(setup, (list, tuple)) else [setup]
+    targets = list(target) if isinstance(target, list) else [target]
+    if len(setups) != len(targets):
+        raise InputError(f"{len(setups)} set-up(s) but {len(targets)} target(s): give one "
+                         f"target per set-up")
+    out = []
+    for k, (su, t) in enumerate(zip(setups, targets)):
+        if not isinstance(su, lab.Setup):
+            raise InputError(f"set-up {k} must be a jdem.lab.Setup, got {type(su).__name__}")
+        if isinstance(t, Scalar):
+            t = (t,)
+        if isinstance(t, tuple) and t and all(isinstance(x, Scalar) for x in t):
+            t = tuple(check_scalar(x) for x in t)
+        else:
+            t = load_target(t)
+        out.append(Term(su, t, weights))
+    return out
+
+
+def _member_residuals(hist, term: Term):
+    if isinstance(term.target, Target):
+        return curve_residuals(hist["axial_strain"], hist["axial_stress"], term.target,
+                               term.weights)
+    return scalar_residuals(hist, term.target)
+
+
+def term_residuals(hist: dict, term: Term):
+    """Residuals of one term from its pure-run history, and (members,) flags of
+    the members that ran without diverging.  An ensemble's residuals are each
+    member's over sqrt(members) (so the loss is the mean over members); a
+    diverged member's residuals are set to 1 (a 100 % misfit)."""
+    if term.setup.plan.batched:
+        r = jax.vmap(lambda h: _member_residuals(h, term))(
+            {k: v for k, v in hist.items() if jnp.ndim(v) >= 2})
+        ok = (hist["member_first_bad_step"] < 0) & jnp.all(jnp.isfinite(r), axis=1)
+        r = jnp.where(ok[:, None], r, 1.0) / math.sqrt(r.shape[0])
+        return r.ravel(), ok
+    r = _member_residuals(hist, term)
+    ok = (hist["first_bad_step"] < 0) & jnp.all(jnp.isfinite(r))
+    return jnp.where(ok, r, 1.0), ok[None]
+
+
+def _residual_fn(u, args, *, names, lims, terms):
+    """fn(u, args) -> (residuals, aux) with args = ((setup, params), ...) per term."""
+    vals = {n: _to_value(u[i], *lims[n]) for i, n in enumerate(names)}
+    rs, over, ok = [], [], []
+    for term, (setup, params) in zip(terms, args):
+        hist = lab.curve(setup, material(params, vals)).history
+        r, good = term_residuals(hist, term)
+        rs.append(r)
+        over.append(hist["overflowed"])
+        ok.append(good)
+    r = jnp.concatenate(rs)
+    return r, dict(overflowed=jnp.stack(over), ok=tuple(ok), loss=jnp.sum(r ** 2))
+
+
+def calibration_loss(params: Params, setup, target, weights=LossWeights()):
+    """Sum of squared residuals of ``params`` on one lab-test set-up against one
+    target (the mean over an ensemble's members), and the pure run's history."""
+    term = _terms(setup, target, weights)[0]
+    hist = lab.curve(setup, params).history
+    r, _ = term_residuals(hist, term)
+    return jnp.sum(r ** 2), hist
+
+
+# ----------------------------------------------------------------------------- result
 class CalibrationResult(NamedTuple):
-    """values   fitted parameters (name -> float), the best iterate
-    loss       its loss
-    start      the starting values
-    history    dict: ``loss`` (S,), ``<name>`` (S,) values per iteration
-    steps      optimiser steps taken; ``converged``: stopped by ``tol``/``patience``
-    params     ``Params`` with the fitted values
-    curves     dict: ``target_strain``, ``target_stress`` and the simulated
-               ``strain``, ``start_stress``, ``fit_stress`` (members x records for
-               an ensemble)
-    wall_time  seconds"""
+    """values        fitted parameters (name -> float), the best iterate
+    loss          its sum of squared residuals
+    start         the starting values
+    history       ``loss`` (S,) and ``<name>`` (S,) per iteration (the accepted point)
+    steps         iterations; ``converged``: the solver's tolerance (or ``tol``) was met
+    params        ``Params`` with the fitted values
+    curves        ``target_strain``, ``target_stress``, ``strain``, ``start_stress``,
+                  ``fit_stress`` of the first curve target (members x records for
+                  an ensemble); further terms prefixed ``term<k>_``
+    wall_time     seconds
+    method, jacobian   the solver and the Jacobian mode ("forward" / "reverse")
+    std_errors    name -> standard error (same unit as the value)
+    intervals     name -> (lo, hi) 95 % interval
+    correlation   (k, k) correlation matrix of the fitted parameters (names order)
+    poorly_determined  name -> why the data do not determine it
+    diverged      list of (iteration, term, member) of ensemble members that diverged"""
 
     values: dict
     loss: float
@@ -227,154 +192,414 @@ class CalibrationResult(NamedTuple):
     params: Params
     curves: dict
     wall_time: float
+    method: str = "lm"
+    jacobian: str = "forward"
+    std_errors: dict = {}
+    intervals: dict = {}
+    correlation: np.ndarray = np.zeros((0, 0))
+    poorly_determined: dict = {}
+    diverged: list = []
 
 
-def calibration_loss(params: Params, setup, target: Target, weights=LossWeights()):
-    """Loss of ``params`` on a lab-test :class:`jdem.lab.Setup` (mean over an
-    ensemble's members) and the history of the pure run."""
-    hist = lab.curve(setup, params).history
-    e, s = hist["axial_strain"], hist["axial_stress"]
-    if setup.plan.batched:
-        losses = jax.vmap(lambda a, b: curve_loss(a, b, target, weights))(e, s)
-        return jnp.mean(losses), hist
-    return curve_loss(e, s, target, weights), hist
+def _uncertainty(J, r, u, names, lims, n_fit):
+    """Gauss-Newton standard errors, 95 % intervals and correlations at ``u``.
+
+    J (n, k) = dr/du; converted to d r / d ln(value) (log-space parameters) or
+    d r / d value (linear ones).  Covariance s^2 (J^T J)^-1 with s^2 = RSS / (n - k),
+    n the residuals that carry data.  The curve points are correlated, so these
+    intervals are a lower bound on the true uncertainty."""
+    k = len(names)
+    scale = np.array([_dscale_du(float(u[i]), *lims[n]) for i, n in enumerate(names)])
+    Jp = np.asarray(J) / scale[None, :]
+    rss = float(np.sum(np.asarray(r) ** 2))
+    dof = max(n_fit - k, 1)
+    s2 = rss / dof
+    jtj = Jp.T @ Jp
+    why = {}
+    norms = np.sqrt(np.diag(jtj))
+    for i, n in enumerate(names):
+        if not norms[i] > 0:
+            why[n] = "the residuals do not depend on it"
+    try:
+        cov = s2 * np.linalg.pinv(jtj, rcond=1e-12)
+    except np.linalg.LinAlgError:
+        cov = np.full((k, k), np.nan)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(sd, sd)
+    values = {n: float(_to_value(float(u[i]), *lims[n])) for i, n in enumerate(names)}
+    std, intervals = {}, {}
+    for i, n in enumerate(names):
+        v = values[n]
+        if _log_space(lims[n][0]):
+            std[n] = v * float(sd[i])
+            intervals[n] = (v * math.exp(-1.96 * sd[i]), v * math.exp(1.96 * sd[i]))
+            if n not in why and sd[i] > 0.25:
+                why[n] = f"relative standard error {100 * sd[i]:.0f} % (> 25 %)"
+        else:
+            std[n] = float(sd[i])
+            intervals[n] = (v - 1.96 * sd[i], v + 1.96 * sd[i])
+            if n not in why and 1.96 * sd[i] > 0.5 * (lims[n][1] - lims[n][0]):
+                why[n] = "its 95 % interval spans more than half its bounds"
+    for i in range(k):
+        for j in range(i + 1, k):
+            if abs(corr[i, j]) > 0.98:
+                for n in (names[i], names[j]):
+                    why.setdefault(n, f"correlation {corr[i, j]:+.3f} between {names[i]} "
+                                      f"and {names[j]}: only a combination is determined")
+    return std, intervals, corr, why
 
 
-def calibrate(setup, target, start: dict, *, params=None, bounds=None, steps=100,
-              learning_rate=0.1, weights=LossWeights(), tol=1e-5, patience=20,
-              min_improvement=1e-3, progress=True, out=None, require_quasi_static=True):
-    """Fit the named parameters of ``start`` to ``target`` by gradient descent.
+# ----------------------------------------------------------------------------- calibrate
+def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="lm",
+              jacobian="auto", steps=30, rtol=1e-4, atol=1e-8, learning_rate=0.1,
+              weights=LossWeights(), tol=1e-8, patience=None, min_improvement=1e-3,
+              progress=True, out=None, checkpoint=None, resume=None,
+              require_quasi_static=True) -> CalibrationResult:
+    """Fit the named parameters of ``start`` to ``target``.
 
     setup          a :class:`jdem.lab.Setup` (e.g. ``jdem.lab.UCS.setup(specimen,
-                   params, stiffness_margin=2)``: one packing or an ensemble)
-    params         default ``setup.params``
-    target         anything :func:`load_target` takes
+                   params)``: one packing or an ensemble), or a list of them
+    target         anything :func:`jdem.targets.load_target` takes (a curve), a
+                   :class:`~jdem.targets.Scalar` or tuple of them; a list, one per set-up
     start          name -> starting value (names from ``PARAMETERS``)
-    bounds         name -> (lo, hi); default: ``DEFAULT_BOUNDS`` or start / 5 .. start x 5.
-                   The optimiser works on u with value = lo (hi/lo)^sigmoid(u)
-                   (log space; linear when lo <= 0), so bounds always hold
-    steps          at most this many Adam steps (optax); the step size in u decays
-                   from ``learning_rate`` to 5 % of it (cosine) over ``steps``
-    tol            stop when the loss falls below it
-    patience       stop when the best loss has not improved by a fraction
-                   ``min_improvement`` for this many steps
-    out            optional HDF5 path for the result (:func:`save_calibration`)
-    require_quasi_static  run :func:`jdem.lab.certify` at the start values first and
-                   raise ``InputError`` if the set-up is not quasi-static (the fit
-                   would describe the loading rate, not the rock)
+    params         the other parameters; default each set-up's own ``params``
+    bounds         name -> (lo, hi); default ``DEFAULT_BOUNDS`` or start / 5 .. start x 5
+    method         "lm" (Levenberg-Marquardt), "gauss_newton" or "adam"
+    jacobian       "forward", "reverse" or "auto" (forward for <= 8 parameters)
+    steps          at most this many iterations
+    rtol, atol     the least-squares solvers' tolerances (on u and on the loss)
+    learning_rate  Adam's step in u (cosine decay to 5 % over ``steps``)
+    tol, patience  stop when the loss falls below ``tol``, or has not improved by
+                   a fraction ``min_improvement`` for ``patience`` iterations
+                   (default 3 for the least-squares solvers, 20 for Adam)
+    out            HDF5 path for the result (:func:`save_calibration`)
+    checkpoint     HDF5 path written after every iteration (default: next to
+                   ``out``); ``resume``: such a file to continue from
+    require_quasi_static  certify each set-up at the start values first
+                   (:func:`jdem.lab.certify`) and refuse one that is not
     """
-    import optax
-
-    params = setup.params if params is None else params
-    target = target if isinstance(target, Target) else load_target(target)
+    if method not in METHODS:
+        raise InputError(f"method must be one of {METHODS}, got {method!r}")
+    if patience is None:
+        patience = 20 if method == "adam" else 3
     check_names(start)
+    terms = _terms(setup, target, weights)
     names = list(start)
+    k = len(names)
+    if jacobian == "auto":
+        jacobian = "forward" if k <= FORWARD_MODE_MAX else "reverse"
+    if jacobian not in ("forward", "reverse"):
+        raise InputError(f"jacobian must be 'forward', 'reverse' or 'auto', got {jacobian!r}")
     lims = {n: _bounds_for(n, float(start[n]), bounds) for n in names}
-    u = {n: jnp.asarray(_to_internal(float(start[n]), *lims[n])) for n in names}
+    plist = [t.setup.params if params is None else params for t in terms]
+    history = {"loss": [], **{n: [] for n in names}}
+    done = 0
+    values0 = {n: float(start[n]) for n in names}
+    if resume is not None:
+        back = load_calibration(resume)
+        if sorted(back["values"]) != sorted(names):
+            raise InputError(f"resume file {resume} fits {sorted(back['values'])}, not "
+                             f"{sorted(names)}")
+        history = {kk: list(v) for kk, v in back["history"].items()}
+        done = back["steps"]
+        values0 = {n: back["values"][n] for n in names}
     if require_quasi_static:
-        cert = lab.certify(setup, material(params, start))
-        if not cert.quasi_static:
-            raise InputError(f"the calibration set-up is not quasi-static: {cert}; lower "
-                             f"loading_rate, or pass require_quasi_static=False")
-    curve0, setup = lab.checked_curve(setup, material(params, start))
+        for i, t in enumerate(terms):
+            cert = lab.certify(t.setup, material(plist[i], start))
+            if not cert.quasi_static:
+                raise InputError(f"set-up {i} ({t.setup.plan.test.name}) is not quasi-static: "
+                                 f"{cert}; lower loading_rate, or pass "
+                                 f"require_quasi_static=False")
+    if checkpoint is None and out is not None:
+        checkpoint = pathlib.Path(out).with_suffix(".checkpoint.h5")
+    t0 = time.time()
+    curves0 = _curves(terms, plist, {n: float(start[n]) for n in names}, "start")
+    terms = [t._replace(setup=c[1]) for t, c in zip(terms, curves0)]
+    u = jnp.asarray([_to_internal(values0[n], *lims[n]) for n in names])
+    n_data = sum(_n_data(t) for t in terms)
 
-    def loss_fn(u):
-        vals = {n: _to_value(u[n], *lims[n]) for n in names}
-        loss, out = calibration_loss(material(params, vals), setup, target, weights)
-        return loss, (out["overflowed"], out["first_bad_step"])
-
-    # Adam with a cosine decay to 5 % of the rate: large early steps, then settling
-    opt = optax.adam(optax.cosine_decay_schedule(learning_rate, max(int(steps), 1), alpha=0.05))
-    state = opt.init(u)
-    grad_fn = jax.jit(jax.value_and_grad(loss_fn, has_aux=True))
-    hist = {"loss": []}
-    hist.update({n: [] for n in names})
-    best = (np.inf, dict(start))
-    since_best = 0
-    converged = False
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=steps, desc="calibrate", unit="it", leave=False)
-    t0 = time.time()
-    k = 0
+        bar = tqdm(total=steps, initial=min(done, steps), unit="it",
+                   desc=f"calibrate ({method}, {jacobian} Jacobian)", leave=False)
+    diverged, converged = [], False
+    best = (min(history["loss"]) if history["loss"] else np.inf, dict(values0))
+
+    def record(u_now, loss, ok):
+        nonlocal best
+        vals = {n: float(_to_value(float(u_now[i]), *lims[n])) for i, n in enumerate(names)}
+        history["loss"].append(float(loss))
+        for n in names:
+            history[n].append(vals[n])
+        for ti, flags in enumerate(ok):
+            for m in np.flatnonzero(~np.asarray(flags)):
+                diverged.append((len(history["loss"]) - 1, ti, int(m)))
+        if float(loss) < best[0]:
+            best = (float(loss), vals)
+        if checkpoint is not None:
+            _save(checkpoint, _partial_result(best, start, history, terms, plist, method,
+                                              jacobian, time.time() - t0))
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(loss=f"{float(loss):.3g}")
+
     try:
-        while k < steps:
-            (loss, (over, bad)), g = grad_fn(u)
-            if bool(over):
-                setup = lab.grow(setup)
-                grad_fn = jax.jit(jax.value_and_grad(loss_fn, has_aux=True))
-                continue
-            if int(bad) >= 0 or not np.isfinite(float(loss)):
-                raise RuntimeError(f"calibration step {k}: the test diverged at step {int(bad)} "
-                                   f"(loss {float(loss)!r}); narrow the bounds")
-            vals = {n: float(_to_value(u[n], *lims[n])) for n in names}
-            loss = float(loss)
-            hist["loss"].append(loss)
-            for n in names:
-                hist[n].append(vals[n])
-            if loss < best[0] * (1.0 - min_improvement):
-                since_best = 0
-            else:
-                since_best += 1
-            if loss < best[0]:
-                best = (loss, vals)
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(loss=f"{loss:.3g}")
-            k += 1
-            if loss < tol or since_best >= patience:
-                converged = True
-                break
-            updates, state = opt.update(g, state, u)
-            u = optax.apply_updates(u, updates)
+        stepper = _adam if method == "adam" else _least_squares
+        converged, terms = stepper(terms, plist, u, names, lims, record, history,
+                                   steps - done, method=method, jacobian=jacobian, rtol=rtol,
+                                   atol=atol, learning_rate=learning_rate, tol=tol,
+                                   patience=patience, min_improvement=min_improvement)
     finally:
         if bar is not None:
             bar.close()
-    fitted = material(params, best[1])
-    curve1, setup = lab.checked_curve(setup, fitted)
-    curves = dict(target_strain=target.strain, target_stress=target.stress,
-                  strain=curve0["axial_strain"], start_stress=curve0["axial_stress"],
-                  fit_stress=curve1["axial_stress"])
+    # uncertainty and curves at the best point
+    ub = jnp.asarray([_to_internal(best[1][n], *lims[n]) for n in names])
+    fn = functools.partial(_residual_fn, names=tuple(names), lims=lims, terms=tuple(terms))
+    args = tuple((t.setup, p) for t, p in zip(terms, plist))
+    r, J = _jacobian(fn, ub, args, jacobian)
+    std, intervals, corr, why = _uncertainty(J, r, np.asarray(ub), names, lims, n_data)
+    curves1 = _curves(terms, plist, best[1], "fit")
+    curves = _merge_curves(terms, curves0, curves1)
+    fitted = material(plist[0], best[1])
     res = CalibrationResult(values=best[1], loss=best[0], start=dict(start),
-                            history={k_: np.asarray(v) for k_, v in hist.items()}, steps=k,
-                            converged=converged, params=fitted, curves=curves,
-                            wall_time=time.time() - t0)
+                            history={kk: np.asarray(v) for kk, v in history.items()},
+                            steps=len(history["loss"]), converged=converged, params=fitted,
+                            curves=curves, wall_time=time.time() - t0, method=method,
+                            jacobian=jacobian, std_errors=std, intervals=intervals,
+                            correlation=corr, poorly_determined=why, diverged=diverged)
     if out is not None:
         save_calibration(out, res)
     return res
 
 
+def _n_data(term):
+    n = len(term.target.strain) if isinstance(term.target, Target) else len(term.target)
+    return n * term.setup.n_members
+
+
+@functools.lru_cache(maxsize=8)
+def _jit_jacobian(fn, mode):
+    if mode == "forward":
+        def jac(u, args):
+            r, lin = jax.linearize(lambda v: fn(v, args)[0], u)
+            return r, jax.vmap(lin, out_axes=1)(jnp.eye(u.shape[0], dtype=u.dtype))
+    else:
+        def jac(u, args):
+            r, vjp = jax.vjp(lambda v: fn(v, args)[0], u)
+            return r, jax.vmap(vjp)(jnp.eye(r.shape[0], dtype=r.dtype))[0]
+    return jax.jit(jac)
+
+
+def _jacobian(fn, u, args, mode):
+    r, J = _jit_jacobian(fn, mode)(u, args)
+    return np.asarray(r), np.asarray(J)
+
+
+def _least_squares(terms, plist, u, names, lims, record, history, steps, *, method, jacobian,
+                   rtol, atol, tol, patience, min_improvement, **_):
+    """Levenberg-Marquardt / Gauss-Newton (optimistix), one host step per iteration."""
+    import equinox as eqx
+    import optimistix as optx
+
+    solver = (optx.LevenbergMarquardt if method == "lm" else optx.GaussNewton)(rtol=rtol,
+                                                                                atol=atol)
+    options = dict(jac="fwd" if jacobian == "forward" else "bwd")
+    tags = frozenset()
+    stall, last = 0, (min(history["loss"]) if history["loss"] else np.inf)
+    k = 0
+    while k < steps:
+        fn = functools.partial(_residual_fn, names=tuple(names), lims=lims, terms=tuple(terms))
+        args = tuple((t.setup, p) for t, p in zip(terms, plist))
+        f_struct, aux_struct = jax.eval_shape(fn, u, args)
+        state = solver.init(fn, u, args, options, f_struct, aux_struct, tags)
+        step = eqx.filter_jit(lambda y, s, a: solver.step(fn, y, a, options, s, tags))
+        terminate = eqx.filter_jit(lambda y, s, a: solver.terminate(fn, y, a, options, s, tags))
+        regrow = False
+        while k < steps:
+            u, state, _ = step(u, state, args)
+            aux = state.aux
+            if bool(np.any(np.asarray(aux["overflowed"]))):
+                terms = [t._replace(setup=lab.grow(t.setup)) if bool(o) else t
+                         for t, o in zip(terms, np.asarray(aux["overflowed"]))]
+                regrow = True
+                break
+            loss = float(aux["loss"])
+            if not np.isfinite(loss):
+                raise RuntimeError(f"calibration iteration {len(history['loss'])}: the loss is "
+                                   f"{loss!r} at {dict(zip(names, np.asarray(u)))} (internal "
+                                   f"coordinates); narrow the bounds")
+            if k == 0 and not all(bool(np.any(np.asarray(o))) for o in aux["ok"]):
+                raise InputError("a test (every member of it) diverges at the start values; "
+                                 "change them or the time step")
+            record(u, loss, aux["ok"])
+            k += 1
+            stall = 0 if loss < last * (1.0 - min_improvement) else stall + 1
+            last = min(last, loss)
+            done, _result = terminate(u, state, args)
+            if bool(done) or loss < tol:
+                return True, terms
+            if stall >= patience:
+                return True, terms
+        if not regrow:
+            break
+    return False, terms
+
+
+def _adam(terms, plist, u, names, lims, record, history, steps, *, jacobian, learning_rate,
+          tol, patience, min_improvement, **_):
+    """First-order fit: Adam (optax) on the sum of squares, gradient 2 J^T r by forward
+    mode or by ``jax.grad``."""
+    import optax
+
+    opt = optax.adam(optax.cosine_decay_schedule(learning_rate, max(int(steps), 1), alpha=0.05))
+    state = opt.init(u)
+    stall, last = 0, (min(history["loss"]) if history["loss"] else np.inf)
+    k = 0
+    while k < steps:
+        fn = functools.partial(_residual_fn, names=tuple(names), lims=lims, terms=tuple(terms))
+        args = tuple((t.setup, p) for t, p in zip(terms, plist))
+        loss, aux, g = _value_and_grad(fn, jacobian)(u, args)
+        if bool(np.any(np.asarray(aux["overflowed"]))):
+            terms = [t._replace(setup=lab.grow(t.setup)) if bool(o) else t
+                     for t, o in zip(terms, np.asarray(aux["overflowed"]))]
+            continue
+        loss = float(loss)
+        if not np.isfinite(loss):
+            raise RuntimeError(f"calibration iteration {len(history['loss'])}: the loss is "
+                               f"{loss!r}; narrow the bounds")
+        record(u, loss, aux["ok"])
+        k += 1
+        stall = 0 if loss < last * (1.0 - min_improvement) else stall + 1
+        last = min(last, loss)
+        if loss < tol or stall >= patience:
+            return True, terms
+        updates, state = opt.update(g, state, u)
+        u = optax.apply_updates(u, updates)
+    return False, terms
+
+
+
+
+@functools.lru_cache(maxsize=8)
+def _value_and_grad(fn, mode):
+    if mode == "forward":
+        def vg(u, args):
+            def with_residuals(v):
+                r, aux = fn(v, args)
+                return r, (r, aux)
+
+            J, (r, aux) = jax.jacfwd(with_residuals, has_aux=True)(u)
+            return jnp.sum(r ** 2), aux, 2.0 * J.T @ r
+    else:
+        def vg(u, args):
+            def loss(v):
+                r, aux = fn(v, args)
+                return jnp.sum(r ** 2), aux
+
+            (value, aux), g = jax.value_and_grad(loss, has_aux=True)(u)
+            return value, aux, g
+    return jax.jit(vg)
+
+
+# ----------------------------------------------------------------------------- curves, files
+def _curves(terms, plist, values, label):
+    """[(history as NumPy, grown set-up)] per term at ``values``."""
+    return [lab.checked_curve(t.setup, material(p, values)) for t, p in zip(terms, plist)]
+
+
+def _merge_curves(terms, start, fit):
+    out = {}
+    for k, (t, (h0, _), (h1, _)) in enumerate(zip(terms, start, fit)):
+        pre = "" if k == 0 else f"term{k}_"
+        if isinstance(t.target, Target):
+            out[pre + "target_strain"] = t.target.strain
+            out[pre + "target_stress"] = t.target.stress
+        out[pre + "strain"] = h0["axial_strain"]
+        out[pre + "start_stress"] = h0["axial_stress"]
+        out[pre + "fit_stress"] = h1["axial_stress"]
+    return out
+
+
+def _partial_result(best, start, history, terms, plist, method, jacobian, wall):
+    return CalibrationResult(values=best[1], loss=best[0], start=dict(start),
+                             history={k: np.asarray(v) for k, v in history.items()},
+                             steps=len(history["loss"]), converged=False,
+                             params=material(plist[0], best[1]), curves={}, wall_time=wall,
+                             method=method, jacobian=jacobian)
+
+
 def save_calibration(path, res: CalibrationResult):
     """Write a :class:`CalibrationResult` to HDF5 (``jdem.io.save_run``: params,
-    history = loss/parameter history and curves, attrs = fitted and start values)."""
+    history = iteration history and curves, attrs = fitted / start values, errors)."""
+    return _save(path, res)
+
+
+def _save(path, res):
     history = {f"iter_{k}": v for k, v in res.history.items()}
     history.update(res.curves)
+    if np.size(res.correlation):
+        history["correlation"] = np.asarray(res.correlation)
     attrs = {f"fit_{k}": v for k, v in res.values.items()}
     attrs.update({f"start_{k}": v for k, v in res.start.items()})
+    attrs.update({f"stderr_{k}": v for k, v in res.std_errors.items()})
+    attrs.update({f"ci95_{k}": list(v) for k, v in res.intervals.items()})
+    attrs.update({f"undetermined_{k}": v for k, v in res.poorly_determined.items()})
     attrs.update(loss=res.loss, steps=res.steps, converged=res.converged,
-                 wall_time=res.wall_time)
+                 wall_time=res.wall_time, method=res.method, jacobian=res.jacobian,
+                 names=list(res.values), diverged=[list(d) for d in res.diverged])
     return io.save_run(path, params=res.params, history=history, attrs=attrs)
 
 
 def load_calibration(path) -> dict:
-    """``{values, start, loss, steps, converged, history, curves, params}`` from
-    :func:`save_calibration`."""
+    """``{values, start, loss, steps, converged, history, curves, params, method,
+    jacobian, std_errors, intervals, correlation, poorly_determined}`` from
+    :func:`save_calibration` (or a checkpoint)."""
     rd = io.load_run(path)
     a = rd.attrs or {}
-    hist = rd.history or {}
-    return dict(values={k[4:]: float(v) for k, v in a.items() if k.startswith("fit_")},
+    hist = {k: np.asarray(v) for k, v in (rd.history or {}).items()}
+    names = list(a.get("names", [k[4:] for k in a if k.startswith("fit_")]))
+    return dict(values={n: float(a[f"fit_{n}"]) for n in names},
                 start={k[6:]: float(v) for k, v in a.items() if k.startswith("start_")},
                 loss=float(a["loss"]), steps=int(a["steps"]), converged=bool(a["converged"]),
+                method=a.get("method"), jacobian=a.get("jacobian"),
+                std_errors={k[7:]: float(v) for k, v in a.items() if k.startswith("stderr_")},
+                intervals={k[5:]: tuple(v) for k, v in a.items() if k.startswith("ci95_")},
+                poorly_determined={k[13:]: v for k, v in a.items()
+                                   if k.startswith("undetermined_")},
+                correlation=hist.pop("correlation", np.zeros((0, 0))),
                 history={k[5:]: v for k, v in hist.items() if k.startswith("iter_")},
                 curves={k: v for k, v in hist.items() if not k.startswith("iter_")},
                 params=rd.params)
 
 
+def report(res: CalibrationResult, true_values=None) -> str:
+    """A few lines: each fitted value with its standard error and 95 % interval,
+    and the parameters the data leave undetermined."""
+    lines = [f"{res.method}, {res.jacobian}-mode Jacobian: loss {res.loss:.3g} after "
+             f"{res.steps} iterations ({res.wall_time:.0f} s)"]
+    for n, v in res.values.items():
+        se = res.std_errors.get(n, float("nan"))
+        lo, hi = res.intervals.get(n, (float("nan"), float("nan")))
+        line = (f"  {n:9s} {v:.5g} +- {se:.2g}  (95 %: {lo:.4g} .. {hi:.4g}; "
+                f"start {res.start[n]:.4g})")
+        if true_values and n in true_values:
+            line += f"  true {true_values[n]:.4g} ({100 * (v / true_values[n] - 1):+.2f} %)"
+        lines.append(line)
+    for n, why in res.poorly_determined.items():
+        lines.append(f"  not determined: {n}: {why}")
+    if res.diverged:
+        lines.append(f"  {len(res.diverged)} ensemble member run(s) diverged (iteration, "
+                     f"term, member): {res.diverged[:5]}")
+    return "\n".join(lines)
+
+
 def plot_calibration(res: CalibrationResult, path=None, *, true_values=None):
-    """Target, starting and fitted curves (left) and the loss history (right);
-    written as PNG when ``path`` is given.  Returns the matplotlib figure."""
+    """Four panels: target, start and fitted curves; the fit's residual stress;
+    the loss history; the fitted values with their 95 % intervals and the
+    correlation matrix.  Written as PNG when ``path`` is given; returns the figure."""
     import matplotlib
 
     if path is not None:
@@ -382,31 +607,59 @@ def plot_calibration(res: CalibrationResult, path=None, *, true_values=None):
     import matplotlib.pyplot as plt
 
     c = res.curves
-    fig, (ax, bx) = plt.subplots(1, 2, figsize=(10, 4))
-    ax.plot(c["target_strain"] * 100, c["target_stress"] / 1e6, "k-", lw=2.5, label="target")
+    fig, axes = plt.subplots(2, 2, figsize=(11, 8))
+    ax, rx, bx, cx = axes.ravel()
+    if "target_strain" in c:
+        ax.plot(c["target_strain"] * 100, c["target_stress"] / 1e6, "k-", lw=2.5,
+                label="target")
     for key, style, label in (("start_stress", "C1--", "start"), ("fit_stress", "C0-", "fitted")):
-        s = np.atleast_2d(c[key])
-        e = np.atleast_2d(c["strain"])
+        if key not in c:
+            continue
+        s, e = np.atleast_2d(c[key]), np.atleast_2d(c["strain"])
         for m in range(s.shape[0]):
             ax.plot(e[m] * 100, s[m] / 1e6, style, lw=1.2, label=label if m == 0 else None)
-    ax.set_xlabel("axial strain [%]")
-    ax.set_ylabel("axial stress [MPa]")
+            if key == "fit_stress" and "target_strain" in c:
+                sim = np.interp(c["target_strain"], e[m], s[m])
+                rx.plot(c["target_strain"] * 100, (sim - c["target_stress"]) / 1e6, "C0-",
+                        lw=1)
+    ax.set(xlabel="axial strain [%]", ylabel="axial stress [MPa]", title="stress-strain")
     ax.grid(alpha=0.3)
     ax.legend()
-    text = "\n".join(f"{k}: {res.start[k]:.4g} -> {v:.4g}"
-                     + (f" (true {true_values[k]:.4g})" if true_values and k in true_values else "")
-                     for k, v in res.values.items())
-    ax.set_title("stress-strain", fontsize=10)
-    ax.text(0.98, 0.02, text, transform=ax.transAxes, ha="right", va="bottom", fontsize=8,
-            bbox=dict(fc="white", alpha=0.8))
-    bx.semilogy(np.arange(len(res.history["loss"])), res.history["loss"], "C0-")
-    bx.set_xlabel("optimiser step")
-    bx.set_ylabel("loss")
+    rx.axhline(0, color="k", lw=0.8)
+    rx.set(xlabel="axial strain [%]", ylabel="fitted - target [MPa]", title="residual")
+    rx.grid(alpha=0.3)
+    loss = res.history["loss"]
+    bx.semilogy(np.arange(len(loss)), loss, "C0.-")
+    bx.set(xlabel="iteration", ylabel="sum of squared residuals",
+           title=f"{res.method}, {res.jacobian} Jacobian: {res.steps} iterations, "
+                 f"{res.wall_time:.0f} s")
     bx.grid(alpha=0.3, which="both")
-    bx.set_title(f"{res.steps} steps, {res.wall_time:.0f} s", fontsize=10)
+    names = list(res.values)
+    for i, n in enumerate(names):
+        v = res.values[n]
+        lo, hi = res.intervals.get(n, (v, v))
+        cx.errorbar([i], [1.0], yerr=[[1 - lo / v], [hi / v - 1]], fmt="o", color="C0",
+                    capsize=4)
+        if true_values and n in true_values:
+            cx.plot([i], [true_values[n] / v], "kx", ms=9, label="true" if i == 0 else None)
+        cx.plot([i], [res.start[n] / v], "C1s", ms=5, label="start" if i == 0 else None)
+    cx.set_xticks(range(len(names)), names)
+    cx.set(ylabel="value / fitted", title="fitted values, 95 % intervals")
+    cx.grid(alpha=0.3)
+    cx.legend(fontsize=8)
+    if np.size(res.correlation) > 1:
+        ins = cx.inset_axes([0.62, 0.55, 0.36, 0.42])
+        ins.imshow(res.correlation, vmin=-1, vmax=1, cmap="RdBu_r")
+        for i in range(len(names)):
+            for j in range(len(names)):
+                ins.text(j, i, f"{res.correlation[i, j]:.2f}", ha="center", va="center",
+                         fontsize=7)
+        ins.set_xticks(range(len(names)), names, fontsize=7)
+        ins.set_yticks(range(len(names)), names, fontsize=7)
+        ins.set_title("correlation", fontsize=8)
     fig.tight_layout()
     if path is not None:
-        fig.savefig(path, dpi=120)
+        fig.savefig(path, dpi=110)
         plt.close(fig)
     return fig
 

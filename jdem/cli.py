@@ -89,8 +89,9 @@ def demo(out="results/demo", small=False):
 
 
 def calibration_demo(out, small=False):
-    """Gradient calibration of E and the bond strength against a target UCS curve
-    simulated with known values (:func:`jdem.calibrate.demo_problem`)."""
+    """Calibration of E and the bond strength against a target UCS curve
+    simulated with known values (:func:`jdem.calibrate.demo_problem`), by
+    Levenberg-Marquardt with forward-mode Jacobians."""
     import jax
 
     jax.config.update("jax_enable_x64", True)   # sub-nanometre platen steps need float64
@@ -98,24 +99,21 @@ def calibration_demo(out, small=False):
 
     t0 = time.time()
     print("jdem demo: calibrating E and T0 = c0 of a ~100-disc specimen against a target "
-          "UCS curve (jax.grad + optax)")
-    # A demonstration of the optimiser: it loads faster than the certified
-    # quasi-static rate (lab.platen.DEFAULT_LOADING_RATE) so that it runs in minutes;
-    # reverse-mode gradients through the ~76,000 steps of a certified curve take
-    # about a minute each on two cores.
+          "UCS curve (Levenberg-Marquardt, forward-mode Jacobian)")
+    # A demonstration of the solver: it loads faster than the certified
+    # quasi-static rate (lab.platen.DEFAULT_LOADING_RATE) so that it runs in a
+    # minute or two; `jdem calibrate` certifies the rate by default.
     rate = 6.4e-5 if small else 1.6e-5
     print(f"  loading rate {rate:g} (platen / wave speed): faster than the certified "
           f"quasi-static default, so the fitted values describe this rate; "
-          f"see README 'Calibrating against your own curve'")
+          f"see README 'Calibrate against your laboratory curve'")
     setup, params, target, true, start = calibrate.demo_problem(loading_rate=rate)
-    res = calibrate.calibrate(setup, target, start, steps=15 if small else 30,
+    res = calibrate.calibrate(setup, target, start, steps=12 if small else 20,
                               progress=True, out=out / "calibration.h5",
                               require_quasi_static=False)
     calibrate.plot_calibration(res, out / "calibration.png", true_values=true)
-    for k, v in res.values.items():
-        print(f"  {k:8s}: start {start[k]:.4g}  fitted {v:.4g}  true {true[k]:.4g}  "
-              f"({100 * (v / true[k] - 1):+.1f} %)")
-    print(f"  loss {res.history['loss'][0]:.3g} -> {res.loss:.3g} in {res.steps} steps "
+    print(calibrate.report(res, true))
+    print(f"  loss {res.history['loss'][0]:.3g} -> {res.loss:.3g} in {res.steps} iterations "
           f"-> {out / 'calibration.png'}, {out / 'calibration.h5'}  ({time.time() - t0:.0f} s)")
     return res
 
@@ -151,16 +149,17 @@ def _number(where, value, *, lo=None, hi=None, lo_open=False, hi_open=False, int
     return value
 
 
-def ucs_settings(config_path=None, small=False) -> dict:
-    """The settings of ``jdem ucs``: built-in defaults (``--small``: reduced),
-    overridden by the TOML file.  Unknown sections / keys and bad values raise
+def ucs_settings(config_path=None, small=False, defaults=None) -> dict:
+    """The settings of ``jdem ucs`` (or of ``jdem calibrate``, ``defaults =
+    CALIBRATE_DEFAULTS``): built-in defaults (``--small``: reduced), overridden
+    by the TOML file.  Unknown sections / keys and bad values raise
     :class:`jdem.validate.InputError` naming the key and the value."""
     import copy
     import tomllib
 
     from jdem.validate import InputError
 
-    cfg = copy.deepcopy(UCS_DEFAULTS)
+    cfg = copy.deepcopy(UCS_DEFAULTS if defaults is None else defaults)
     if small:
         for sec, vals in UCS_SMALL.items():
             cfg[sec].update(vals)
@@ -215,7 +214,8 @@ def ucs_settings(config_path=None, small=False) -> dict:
         _number("material.kappa", kap, lo=0)
     _number("loading.loading_rate", ld["loading_rate"], lo=0, lo_open=True)
     _number("loading.platen_step", ld["platen_step"], lo=0)
-    _number("loading.max_strain", ld["max_strain"], lo=0, hi=0.5, lo_open=True)
+    if ld["max_strain"] is not None:
+        _number("loading.max_strain", ld["max_strain"], lo=0, hi=0.5, lo_open=True)
     if ld["damping"] not in ("smooth", "local"):
         raise InputError(f"loading.damping must be \"smooth\" or \"local\", got "
                          f"{ld['damping']!r}")
@@ -314,6 +314,123 @@ def ucs(config=None, out="results/ucs", small=False, progress=True):
     return path
 
 
+# ----------------------------------------------------------------------------- calibrate
+CALIBRATE_DEFAULTS = {
+    "specimen": dict(UCS_DEFAULTS["specimen"], width=0.02, height=0.04, members=1),
+    "material": dict(UCS_DEFAULTS["material"]),
+    "loading": dict(UCS_DEFAULTS["loading"], max_strain=None),
+    "fit": dict(parameters=["E", "strength"], method="lm", steps=20, bounds={},
+                require_quasi_static=True),
+}
+CALIBRATE_SMALL = {"specimen": dict(width=0.004, height=0.008, r_min=0.2e-3, r_max=0.35e-3,
+                                    seed=2, coordination=4.5),
+                   "loading": dict(loading_rate=6.4e-5),
+                   "fit": dict(steps=8, require_quasi_static=False)}
+
+
+def calibrate_settings(config_path=None, small=False) -> dict:
+    """The settings of ``jdem calibrate`` (as :func:`ucs_settings`, plus the
+    ``[specimen] members`` ensemble size and the ``[fit]`` table)."""
+    import copy
+
+    from jdem.materials import PARAMETERS
+    from jdem.validate import InputError
+
+    defaults = copy.deepcopy(CALIBRATE_DEFAULTS)
+    if small:
+        for sec, vals in CALIBRATE_SMALL.items():
+            defaults[sec].update(vals)
+    cfg = ucs_settings(config_path, False, defaults=defaults)
+    _number("specimen.members", cfg["specimen"]["members"], lo=1, integer=True)
+    if isinstance(cfg["material"]["kappa"], list):
+        raise InputError(f"material.kappa must be one number for calibration, got "
+                         f"{cfg['material']['kappa']!r}")
+    fit = cfg["fit"]
+    names = fit["parameters"]
+    if not isinstance(names, list) or not names:
+        raise InputError(f"fit.parameters must be a non-empty list of names, got {names!r}")
+    for n in names:
+        if n not in PARAMETERS:
+            raise InputError(f"fit.parameters: unknown parameter {n!r}; choose from "
+                             f"{sorted(PARAMETERS)}")
+    if fit["method"] not in ("lm", "gauss_newton", "adam"):
+        raise InputError(f"fit.method must be \"lm\", \"gauss_newton\" or \"adam\", got "
+                         f"{fit['method']!r}")
+    _number("fit.steps", fit["steps"], lo=1, integer=True)
+    if not isinstance(fit["bounds"], dict):
+        raise InputError(f"fit.bounds must be a table name = [lo, hi], got {fit['bounds']!r}")
+    for n, b in fit["bounds"].items():
+        if n not in names:
+            raise InputError(f"fit.bounds.{n}: {n!r} is not in fit.parameters {names}")
+        if not (isinstance(b, list) and len(b) == 2):
+            raise InputError(f"fit.bounds.{n} must be [lo, hi], got {b!r}")
+        for k, v in enumerate(b):
+            _number(f"fit.bounds.{n}[{k}]", v)
+    if not isinstance(fit["require_quasi_static"], bool):
+        raise InputError(f"fit.require_quasi_static must be true or false, got "
+                         f"{fit['require_quasi_static']!r}")
+    return cfg
+
+
+def _start_value(name, mat):
+    import math
+
+    return {"E": mat["E"], "nu": mat["nu"], "T0": mat["T0"], "c0": mat["c0"],
+            "phi": math.radians(mat["phi_deg"]), "eps_lim": mat["kappa"],
+            "gamma_lim": mat["kappa"], "strength": mat["T0"], "kappa": mat["kappa"]}[name]
+
+
+def calibrate_cli(curve, config=None, out="results/calibrate", small=False, progress=True):
+    """``jdem calibrate CURVE.csv``: fit the ``[fit] parameters`` of a bonded
+    specimen in the UCS test to a laboratory curve (strain, stress [Pa]); writes
+    ``calibration.png`` and ``calibration.h5`` to ``out``.  Returns the result."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from jdem import calibrate, lab, specimen
+    from jdem.materials import rock_params
+
+    cfg = calibrate_settings(config, small)
+    sp, mat, ld, fit = cfg["specimen"], cfg["material"], cfg["loading"], cfg["fit"]
+    target = calibrate.load_target(curve)
+    out = pathlib.Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    print(f"jdem calibrate: target {curve}: {len(target.strain)} points, peak "
+          f"{target.peak_stress / 1e6:.3g} MPa at strain {target.peak_strain:.3g}, E "
+          f"{target.modulus / 1e9:.3g} GPa")
+    specs = [specimen.generate("rectangle", (sp["width"], sp["height"]), sp["r_min"],
+                               sp["r_max"], seed=sp["seed"] + m, density=mat["density"],
+                               target_porosity=sp["porosity"],
+                               target_coordination=sp["coordination"], progress=False)
+             for m in range(sp["members"])]
+    print(f"  {len(specs)} packing(s) of {specs[0].info['n_particles']} discs, "
+          f"{sp['width'] * 100:g} cm x {sp['height'] * 100:g} cm")
+    params = rock_params(2, E=mat["E"], nu=mat["nu"], T0=mat["T0"], c0=mat["c0"],
+                         phi_deg=mat["phi_deg"], kappa=mat["kappa"])
+    damping = lab.local(ld["local_damping"]) if ld["damping"] == "local" else lab.smooth()
+    rate = dict(platen_step=ld["platen_step"]) if ld["platen_step"] else \
+        dict(loading_rate=ld["loading_rate"])
+    max_strain = ld["max_strain"] or 1.05 * float(target.strain[-1])
+    setup = lab.UCS.setup(specs if len(specs) > 1 else specs[0], params, max_strain=max_strain,
+                          damping=damping, record_every=ld["record_every"] or None,
+                          stiffness_margin=2.0, **rate)
+    start = {n: _start_value(n, mat) for n in fit["parameters"]}
+    bounds = {n: tuple(b) for n, b in fit["bounds"].items()}
+    print(f"  fitting {', '.join(start)} ({fit['method']}, at most {fit['steps']} iterations); "
+          f"loading rate {setup.plan.option('loading_rate'):.3g}"
+          + ("" if fit["require_quasi_static"] else
+             " -- quasi-static check OFF: the values describe this loading rate"))
+    res = calibrate.calibrate(setup, target, start, bounds=bounds or None, method=fit["method"],
+                              steps=fit["steps"], progress=progress, out=out / "calibration.h5",
+                              require_quasi_static=fit["require_quasi_static"])
+    calibrate.plot_calibration(res, out / "calibration.png")
+    print(calibrate.report(res))
+    print(f"  -> {out / 'calibration.png'}, {out / 'calibration.h5'}  "
+          f"({time.time() - t0:.0f} s)")
+    return res
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="jdem", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -326,17 +443,28 @@ def main(argv=None):
     u.add_argument("--out", default="results/ucs")
     u.add_argument("--small", action="store_true",
                    help="reduced specimen (1 cm x 2 cm, ~500 discs) and a faster platen")
+    c = sub.add_parser("calibrate", help="fit micro-parameters to a laboratory stress-strain "
+                                          "curve (CSV: strain, stress in Pa)")
+    c.add_argument("curve", help="CSV file: strain [-], axial stress [Pa]; one header line allowed")
+    c.add_argument("--config", default=None, help="TOML file: [specimen], [material] (start "
+                                                  "values), [loading], [fit]")
+    c.add_argument("--out", default="results/calibrate")
+    c.add_argument("--small", action="store_true",
+                   help="~100-disc specimen, fast loading, no quasi-static check (smoke test)")
     args = ap.parse_args(argv)
     if args.cmd == "demo":
         demo(args.out, args.small)
-    elif args.cmd == "ucs":
-        from jdem.validate import InputError
+        return 0
+    from jdem.validate import InputError
 
-        try:
+    try:
+        if args.cmd == "ucs":
             ucs(args.config, args.out, args.small)
-        except InputError as e:
-            print(f"jdem ucs: error: {e}", file=sys.stderr)
-            return 2
+        else:
+            calibrate_cli(args.curve, args.config, args.out, args.small)
+    except InputError as e:
+        print(f"jdem {args.cmd}: error: {e}", file=sys.stderr)
+        return 2
     return 0
 
 

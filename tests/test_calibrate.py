@@ -106,48 +106,64 @@ def _window_mean(params, model, n_rec):
     return jnp.mean(out["axial_stress"][:n_rec]) / 1e6
 
 
-def test_gradients_match_finite_differences_before_breakage():
+def test_jacobians_match_finite_differences_before_breakage():
     """d(mean stress over the records before the first bond breaks)/d(parameter)
-    by jax.grad vs central differences (relative steps 3e-3 and 1e-3) for every
-    bond parameter.  The run goes on to the peak and softening, but past the
-    first break the events cascade and the response is no longer smooth (finite
-    differences then depend on their step; see jdem.lab.damping).  Before it, bonds
-    yield and soften (so eps_lim and gamma_lim act).  The response is piecewise
-    smooth (every yield is a kink) and the gradient must be within 5 % of the
-    difference at 3e-3 for every parameter.  The differences at 3e-3 and 1e-3 must
-    agree within 5 % (smooth at that scale) for every parameter whose effect in this
-    window is at least 1 % of E's.  Smaller effects are made of few kinks, and
-    the two steps see different ones: measured d ln sigma / d ln p = 3.78 for E,
-    1.35e-2 for gamma_lim (AD; differences 1.31e-2 at 3e-3 and 1.24e-2 at 1e-3)
-    and 1.84e-3 for eps_lim (differences 1.87e-3 and 1.93e-3).
+    by forward mode (jax.jacfwd), by reverse mode (jax.grad) and by central
+    differences (relative steps 3e-3 and 1e-3) for every bond parameter.
+
+    Forward and reverse mode differentiate the same piecewise-smooth program and
+    agree to 1e-4 (relative): they sum in different orders, and each yield kink
+    passes the round-off on (measured: 1.3e-8 for E, 5.1e-6 for eps_lim).  The run goes on to the peak and softening, but past the
+    first break the events cascade and the response is no longer smooth.  Before
+    it, bonds yield and soften (so eps_lim and gamma_lim act); the response is
+    piecewise smooth (every yield is a kink).  Where the response is smooth at the
+    scale of the differences (their two steps agree within 1 %), AD must be within
+    1 % of the difference at 3e-3; for every parameter within 5 %.  Smaller
+    effects are made of few kinks, and the two steps see different ones: measured
+    d ln sigma / d ln p = 3.78 for E, 1.35e-2 for gamma_lim (AD; differences
+    1.31e-2 at 3e-3 and 1.24e-2 at 1e-3) and 1.84e-3 for eps_lim.
     """
     model, params = model_and_params()
     c = target_curve()
     n_rec = int(np.argmax(c["fracture_degree"] > 0))
     assert n_rec > 10 and c["stress"][n_rec] > 0.5 * c["stress"].max()
     grad = jax.jit(jax.grad(_window_mean), static_argnums=2)(params, model, n_rec)
+    x0 = jnp.asarray([float(getattr(params, n)) for n in GRAD_FIELDS])
+
+    def of_fields(x):
+        return _window_mean(params._replace(**{n: x[i] for i, n in enumerate(GRAD_FIELDS)}),
+                            model, n_rec)
+
+    fwd = np.asarray(jax.jit(jax.jacfwd(of_fields))(x0)) * np.asarray(x0)
     f = jax.jit(_window_mean, static_argnums=2)
     report = {}
-    for name in GRAD_FIELDS:
-        x0 = float(getattr(params, name))
+    for k, name in enumerate(GRAD_FIELDS):
+        x = float(x0[k])
         fds = []
         for rel in (3e-3, 1e-3):
-            h = rel * x0
-            fp = f(params._replace(**{name: jnp.asarray(x0 + h)}), model, n_rec)
-            fm = f(params._replace(**{name: jnp.asarray(x0 - h)}), model, n_rec)
-            fds.append(float(fp - fm) / (2 * h) * x0)
-        report[name] = (float(getattr(grad, name)) * x0, fds)
+            h = rel * x
+            fp = f(params._replace(**{name: jnp.asarray(x + h)}), model, n_rec)
+            fm = f(params._replace(**{name: jnp.asarray(x - h)}), model, n_rec)
+            fds.append(float(fp - fm) / (2 * h) * x)
+        report[name] = (float(getattr(grad, name)) * x, float(fwd[k]), fds)
     print(report)
-    largest = max(abs(fds[0]) for _, fds in report.values())
-    smooth = [name for name, (_, fds) in report.items() if abs(fds[0]) >= 0.01 * largest]
+    largest = max(abs(fds[0]) for _, _, fds in report.values())
+    smooth = [name for name, (_, _, fds) in report.items()
+              if abs(fds[0]) >= 0.01 * largest
+              and abs(fds[0] - fds[1]) <= 0.01 * max(abs(fds[0]), abs(fds[1]))]
     assert {"bond_youngs", "bond_poisson", "bond_tensile", "bond_cohesion"} <= set(smooth)
-    for name, (ad, fds) in report.items():
-        if name in smooth:
-            assert abs(fds[0] - fds[1]) <= 0.05 * max(abs(fds[0]), abs(fds[1])), (name, fds)
-        assert abs(ad - fds[0]) <= 0.05 * abs(fds[0]), (name, ad, fds)
+    for name, (rev, fw, fds) in report.items():
+        assert abs(fw - rev) <= 1e-4 * abs(rev), (name, fw, rev)
+        tol = 0.01 if name in smooth else 0.05
+        assert abs(rev - fds[0]) <= tol * abs(fds[0]), (name, rev, fds)
 
 
+@pytest.mark.slow
 def test_gradients_finite_through_breakage():
+    """Reverse-mode gradient of the whole curve's loss (through the peak and the
+    bond breaks) is finite and non-zero for every bond parameter.  Slow (~100 s);
+    the default suite differentiates through breakage in forward mode in the
+    calibration tests."""
     model, params = model_and_params()
     target = cb.load_target(target_curve())
     start = cb.material(params, dict(E=36e9, strength=2.5e6, kappa=4e-3))
@@ -235,21 +251,109 @@ def test_material_and_bad_names():
 
 
 # ----------------------------------------------------------------------------- recovery
-def test_calibration_recovers_fracture_strain(tmp_path):
-    """kappa = eps_lim = gamma_lim from +50 % on the target's packing: within 15 %
-    in at most 100 Adam steps; the result reopens from HDF5."""
+def test_calibration_three_parameters_on_the_targets_packing(tmp_path):
+    """The issue's recovery check on the target's own packing, noise-free, from
+    E +40 %, strength -30 %, kappa +50 %: Levenberg-Marquardt with forward-mode
+    Jacobians ends with E within 1 %, strength within 2 %, kappa within 10 % in at
+    most 20 iterations; the truth lies inside the reported 95 % intervals widened
+    to the tolerances; the result reopens from HDF5."""
     model, params = model_and_params()
-    res = cb.calibrate(model, target_curve(), dict(kappa=1.5 * TRUE["kappa"]), params=params,
-                       steps=100, progress=False, out=tmp_path / "cal.h5",
-                       require_quasi_static=False)
-    print(res.values, res.steps, res.loss)
-    assert res.steps <= 100
-    assert abs(res.values["kappa"] / TRUE["kappa"] - 1) < 0.15
+    start = dict(E=1.4 * TRUE["E"], strength=0.7 * TRUE["strength"], kappa=1.5 * TRUE["kappa"])
+    res = cb.calibrate(model, target_curve(), start, params=params, steps=20, progress=False,
+                       out=tmp_path / "cal.h5", require_quasi_static=False)
+    print(cb.report(res, TRUE))
+    assert res.method == "lm" and res.jacobian == "forward"
+    assert res.steps <= 20
+    assert abs(res.values["E"] / TRUE["E"] - 1) < 0.01
+    assert abs(res.values["strength"] / TRUE["strength"] - 1) < 0.02
+    assert abs(res.values["kappa"] / TRUE["kappa"] - 1) < 0.10
     assert res.history["loss"][0] > 100 * res.loss
+    assert res.correlation.shape == (3, 3)
+    np.testing.assert_allclose(np.diag(res.correlation), 1.0, rtol=1e-9)
+    for n in start:
+        lo, hi = res.intervals[n]
+        assert lo < res.values[n] < hi and res.std_errors[n] > 0
     back = cb.load_calibration(tmp_path / "cal.h5")
     assert back["values"] == pytest.approx(res.values)
+    assert back["intervals"]["E"] == pytest.approx(res.intervals["E"])
     np.testing.assert_allclose(back["curves"]["fit_stress"], res.curves["fit_stress"])
     np.testing.assert_allclose(back["history"]["loss"], res.history["loss"])
+    np.testing.assert_allclose(back["correlation"], res.correlation)
+
+
+def test_interrupted_calibration_resumes_to_the_same_result(tmp_path):
+    """E from +40 %: a fit stopped after 2 iterations (its checkpoint) and resumed
+    ends where the uninterrupted fit ends (within 0.1 %), and keeps the first two
+    iterations in its history."""
+    model, params = model_and_params()
+    start = dict(E=1.4 * TRUE["E"])
+    kw = dict(params=params, progress=False, require_quasi_static=False)
+    whole = cb.calibrate(model, target_curve(), start, steps=20, **kw)
+    part = cb.calibrate(model, target_curve(), start, steps=2,
+                        checkpoint=tmp_path / "ck.h5", **kw)
+    assert part.steps == 2 and (tmp_path / "ck.h5").exists()
+    resumed = cb.calibrate(model, target_curve(), start, steps=20, resume=tmp_path / "ck.h5",
+                           **kw)
+    print(whole.values, whole.steps, resumed.values, resumed.steps)
+    np.testing.assert_allclose(resumed.history["loss"][:2], part.history["loss"])
+    assert resumed.steps > 2
+    assert abs(resumed.values["E"] / whole.values["E"] - 1) < 1e-3
+    assert abs(whole.values["E"] / TRUE["E"] - 1) < 0.01
+
+
+def test_ensemble_member_that_diverges_is_isolated():
+    """Two packings in one vmapped run, member 1 with a time step 30x too large:
+    it diverges, its residuals count as a 100 % misfit (1 / sqrt(2) each), and
+    member 0's residuals are its own curve's over sqrt(2)."""
+    params0 = lt.rock_params(2, kappa=3e-3)
+    kw = dict(max_strain=MAX_STRAIN, loading_rate=RATE, stiffness_margin=2.0)
+    ens = lab.UCS.setup([specimen(2), specimen(3)], params0, **kw)
+    pe = ens.params
+    bad = pe._replace(dt=30.0 * pe.dt)
+    both = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), pe, bad)
+    hist = {k: np.asarray(v) for k, v in lab.curve(ens, both).history.items()}
+    assert hist["member_first_bad_step"][0] < 0 <= hist["member_first_bad_step"][1]
+    term = cb._terms(ens, target_curve(), cb.LossWeights())[0]
+    r, ok = cb.term_residuals(hist, term)
+    r, ok = np.asarray(r).reshape(2, -1), np.asarray(ok)
+    assert ok.tolist() == [True, False]
+    np.testing.assert_allclose(r[1], 1 / np.sqrt(2))
+    own = cb.curve_residuals(jnp.asarray(hist["axial_strain"][0]),
+                             jnp.asarray(hist["axial_stress"][0]), term.target)
+    np.testing.assert_allclose(r[0], np.asarray(own) / np.sqrt(2), rtol=1e-12)
+
+
+def test_scalar_targets_are_z_scores_and_terms_concatenate():
+    """A curve term and a scalar term (peak stress 10 % above the simulated one,
+    sigma 5 % of it) give the curve's residuals followed by the z-score -2."""
+    model, params = model_and_params()
+    c = target_curve()
+    peak = float(np.max(c["stress"]))
+    terms = cb._terms([model, model], [c, cb.Scalar("peak_stress", 1.1 * peak, 0.05 * peak)],
+                      cb.LossWeights())
+    names, lims = ("E",), {"E": (1e9, 1e11)}
+    u = jnp.asarray([cb._to_internal(TRUE["E"], *lims["E"])])
+    r, aux = jax.jit(lambda u, a: cb._residual_fn(u, a, names=names, lims=lims,
+                                                  terms=tuple(terms)))(
+        u, ((model, cb.material(params, TRUE)), (model, cb.material(params, TRUE))))
+    r = np.asarray(r)
+    assert r.shape == (len(c["strain"]) + 2 + 1,)
+    # the same run by hand (E through the bounded transform).  Two compiled
+    # programs sum forces in different orders; up to the first break that is
+    # round-off, and past it the bond events amplify it (measured up to 5e-4).
+    e_used = float(cb._to_value(u[0], *lims["E"]))
+    hist = lab.curve(model, cb.material(params, dict(TRUE, E=e_used))).history
+    expect = np.asarray(cb.curve_residuals(hist["axial_strain"], hist["axial_stress"],
+                                           terms[0].target))
+    first_break = int(np.argmax(c["fracture_degree"] > 0))
+    np.testing.assert_allclose(r[:first_break], expect[:first_break], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(r[:-1], expect, atol=2e-3)
+    assert r[-1] == pytest.approx(-2.0, rel=2e-3)   # (peak - 1.1 peak) / (0.05 peak)
+    assert float(aux["loss"]) == pytest.approx(float(np.sum(r ** 2)))
+    with pytest.raises(InputError, match="quantity"):
+        cb._terms(model, cb.Scalar("ucs", 1e8, 1e7), cb.LossWeights())
+    with pytest.raises(InputError, match="MPa"):
+        cb._terms(model, cb.Scalar("peak_stress", 200.0, 10.0), cb.LossWeights())
 
 
 @pytest.mark.slow
@@ -283,7 +387,7 @@ def test_recovery_three_parameters_on_a_different_packing():
     model = lab.UCS.setup(specimen(3), params0, max_strain=MAX_STRAIN, loading_rate=RATE,
                           stiffness_margin=2.0)
     start = dict(E=1.4 * TRUE["E"], strength=0.65 * TRUE["strength"], kappa=1.5 * TRUE["kappa"])
-    res = cb.calibrate(model, target_curve(), start, steps=100, progress=False,
+    res = cb.calibrate(model, target_curve(), start, steps=20, progress=False,
                        require_quasi_static=False)
     print(res.values, res.steps, res.loss)
     assert abs(res.values["E"] / TRUE["E"] - 1) < 0.03

@@ -11,10 +11,38 @@ def test_demo_writes_plots_and_hdf5(tmp_path):
     hist = io.load_history(path)
     assert abs(np.max(hist["tension_stress"]) / 3e6 - 1) < 5e-3
     assert abs(np.max(hist["shear_stress"]) / (3e6 + 3e6 * np.tan(np.pi / 6)) - 1) < 5e-3
-    # ... and ends with the calibration demo (15 Adam steps in the small run)
+    # ... and ends with the calibration demo (Levenberg-Marquardt, at most 12 iterations)
     assert (tmp_path / "calibration.png").stat().st_size > 10_000
     from jdem import calibrate
 
     back = calibrate.load_calibration(tmp_path / "calibration.h5")
     assert set(back["values"]) == {"E", "strength"}
     assert back["loss"] < 0.5 * back["history"]["loss"][0]
+
+
+def test_calibrate_command_fits_a_csv_curve(tmp_path, capsys):
+    """``jdem calibrate CURVE.csv --config cfg.toml --small``: E from +30 % back to
+    the value the CSV curve was simulated with (within 2 %), a PNG report and an
+    HDF5 result that reopens; a CSV in percent strain stops with exit code 2
+    and a message naming the unit."""
+    from jdem import calibrate
+
+    setup, params, curve, true, start = calibrate.demo_problem(loading_rate=6.4e-5)
+    csv = tmp_path / "lab.csv"
+    csv.write_text("strain,stress_Pa\n" + "".join(f"{e!r},{s!r}\n" for e, s in
+                                                 zip(curve["strain"], curve["stress"])))
+    cfg = tmp_path / "cal.toml"
+    cfg.write_text('[material]\nE = 39e9\n[fit]\nparameters = ["E"]\nsteps = 8\n'
+                   '[fit.bounds]\nE = [10e9, 80e9]\n')
+    assert cli.main(["calibrate", str(csv), "--config", str(cfg), "--small",
+                     "--out", str(tmp_path / "out")]) == 0
+    back = calibrate.load_calibration(tmp_path / "out" / "calibration.h5")
+    assert abs(back["values"]["E"] / true["E"] - 1) < 0.02
+    assert back["std_errors"]["E"] > 0
+    assert (tmp_path / "out" / "calibration.png").stat().st_size > 10_000
+    assert "E " in capsys.readouterr().out
+    pct = tmp_path / "pct.csv"
+    pct.write_text("".join(f"{100 * e!r},{s!r}\n" for e, s in zip(curve["strain"],
+                                                                  curve["stress"])))
+    assert cli.main(["calibrate", str(pct), "--small", "--out", str(tmp_path / "o2")]) == 2
+    assert "percent" in capsys.readouterr().err

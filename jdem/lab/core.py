@@ -196,6 +196,7 @@ def _pure(state, params, frame, plan: Plan):
     hist = _finish(raw, frame, plan)
     hist["overflowed"] = neighbors.overflowed(final.contacts, plan.config)
     hist["first_bad_step"] = jnp.max(final.first_bad_step)
+    hist["member_first_bad_step"] = final.first_bad_step   # (members,) when batched
     return hist, final
 
 
@@ -206,6 +207,7 @@ def curve(setup: Setup, params: Params | None = None) -> LabResult:
     overflowed      () the neighbour list overflowed: the curve is wrong; grow it
                     (:func:`grow`) and run again, or use :func:`checked_curve`
     first_bad_step  () first non-finite step (-1 if none)
+    member_first_bad_step  the same per member (members,) of a batched set-up
 
     ``params`` defaults to ``setup.params`` (use e.g.
     ``jdem.materials.material(setup.params, values)`` to change the rock).  With
