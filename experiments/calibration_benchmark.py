@@ -11,7 +11,10 @@
    with respect to all material parameters (compile time excluded, best of 2),
    and the memory of the gradient: XLA's own estimate for the compiled program
    (arguments + outputs + temporaries) and the growth of the process's peak
-   resident memory while it ran.
+   resident memory while it ran; then the Jacobian of the stress curve with
+   respect to k = 3 parameters (E, strength, kappa, in log space) by forward
+   mode (``jax.jacfwd``: one pass with k tangents, what
+   :func:`jdem.calibrate.calibrate` uses for Levenberg-Marquardt).
 2. A sweep of ``--batch`` parameter sets of the same test as one vmapped call
    (an ensemble of copies of the specimen with one parameter set each),
    ``--sweep-steps`` steps: specimens x steps per second.
@@ -88,7 +91,7 @@ def main(argv=None):
     print(f"{n} discs, {steps} steps, {setup.plan.n_records} records, damping "
           f"{setup.plan.damping}")
 
-    t_fwd = t_grad = xla_bytes = rss1 = float("nan")
+    t_fwd = t_grad = t_jac = xla_bytes = rss1 = float("nan")
     if not a.skip_gradient:
         curve0, setup = lab.checked_curve(setup, params)
         target = calibrate.load_target(curve0)
@@ -109,6 +112,16 @@ def main(argv=None):
         rss1 = _rss_gib()
         print(f"forward+backward: {t_grad:.2f} s = {t_grad / t_fwd:.2f} x forward; XLA memory "
               f"{(xla_bytes or 0) / 2**30:.3f} GiB; peak RSS {rss1:.2f} GiB (+{rss1 - rss0:.2f})")
+        names = ("E", "strength", "kappa")
+
+        def curve_of(x):
+            vals = dict(zip(names, jnp.exp(x)))
+            return lab.curve(setup, material(params, vals)).history["axial_stress"]
+
+        x0 = jnp.log(jnp.asarray([36e9, 2.5e6, 4e-3]))
+        t_jac = _best(jax.jit(jax.jacfwd(curve_of)), x0)
+        print(f"forward-mode Jacobian, k = 3: {t_jac:.2f} s = {t_jac / t_fwd:.2f} x forward "
+              f"(ideal 1 + 1.5 k = 5.5)")
 
     # sweep: vmapped over parameter sets
     sweep_strain = a.sweep_steps * platen_step / 0.025
@@ -137,7 +150,8 @@ def main(argv=None):
                command=" ".join(["python experiments/calibration_benchmark.py"]
                                 + list(sys.argv[1:] if argv is None else argv)),
                n_particles=n, steps=steps, forward_s=t_fwd, forward_backward_s=t_grad,
-               backward_over_forward=t_grad / t_fwd, gradient_xla_bytes=xla_bytes,
+               backward_over_forward=t_grad / t_fwd, jacobian_forward_k3_s=t_jac,
+               jacobian_forward_over_forward=t_jac / t_fwd, gradient_xla_bytes=xla_bytes,
                peak_rss_gib=rss1, sweep_batch=a.batch, sweep_steps=s_steps, sweep_s=t_sweep,
                sweep_specimen_steps_per_s=rate)
     (out / "calibration_benchmark.json").write_text(json.dumps(res, indent=1))
@@ -148,6 +162,7 @@ def main(argv=None):
           f"| specimen | {n} discs, UCS, {steps} steps |",
           f"| forward | {t_fwd:.2f} s |",
           f"| forward + backward (value_and_grad, all parameters) | {t_grad:.2f} s ({t_grad / t_fwd:.2f} x forward) |",
+          f"| forward-mode Jacobian, k = 3 (jacfwd) | {t_jac:.2f} s ({t_jac / t_fwd:.2f} x forward) |",
           f"| gradient memory, XLA estimate | {(xla_bytes or 0) / 2**30:.3f} GiB |",
           f"| process peak resident memory | {rss1:.2f} GiB |",
           f"| sweep, batch {a.batch} x {s_steps} steps | {t_sweep:.1f} s = {rate:.0f} specimens x steps / s |"]

@@ -121,7 +121,7 @@ def _terms(setup, target, weights) -> list[Term]:
 def _member_residuals(hist, term: Term):
     if isinstance(term.target, Target):
         return curve_residuals(hist["axial_strain"], hist["axial_stress"], term.target,
-                               term.weights)
+                               term.weights, hist.get("lateral_strain"))
     return scalar_residuals(hist, term.target)
 
 

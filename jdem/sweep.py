@@ -9,7 +9,8 @@ themselves.
 
 * :func:`grid` and :func:`latin_hypercube` make the samples (dict name -> (n,)).
 * :func:`sweep` runs them and returns a :class:`SweepTable`.
-* :func:`save_sweep` / :func:`load_sweep` write and read the table as HDF5.
+* :func:`save_sweep` / :func:`load_sweep` write and read the table as HDF5;
+  :func:`merge_sweeps` joins the parts written by several processes.
 * :func:`plot_sweep` draws a heat map (two parameters on a grid) or a curve
   (one parameter) of any column.
 
@@ -48,6 +49,14 @@ jitted chunks of :func:`jdem.run` then run each device's members on that
 device.  Batches are padded to a multiple of the device count (and to one
 common size, so that a single compiled chunk serves the whole sweep) by
 repeating their last sample; the padding is dropped from the table.
+
+Several processes.  Started under :func:`jax.distributed.initialize` (on a
+cluster, one process per node or per accelerator), every process runs the
+batches ``k`` with ``k % process_count == process_index`` on its own devices
+(``jax.local_devices()``) and returns, and writes, its share: ``out`` becomes
+``<stem>.process<i>of<n>.h5``.  :func:`merge_sweeps` joins the shares into the
+whole table (rows in sample order, column ``sample``).  No data cross between
+processes while they run, so nothing but the coordinator's address is needed.
 """
 from __future__ import annotations
 
@@ -267,7 +276,7 @@ def _take(tree, idx):
 def _device_list(devices, shard):
     if not shard:
         return None
-    devs = list(jax.devices() if devices is None else devices)
+    devs = list(jax.local_devices() if devices is None else devices)
     if not devs:
         raise InputError("devices must name at least one device")
     return devs if len(devs) > 1 else None
@@ -332,8 +341,10 @@ def sweep(specimen, base_params, samples: dict, *, test=lab.UCS, batch_size=16, 
     test            a :mod:`jdem.lab` test object (``lab.UCS``, ``lab.BIAXIAL`` with
                     ``confining_stress=``, ``lab.BRAZILIAN``, ``lab.TENSION``), or its name
     batch_size      most members per vmapped batch (padding excluded)
-    shard           split every batch over ``devices`` (default: all of
-                    ``jax.devices()``) along its batch axis when there are several
+    shard           split every batch over ``devices`` (default: all of this
+                    process's ``jax.local_devices()``) along its batch axis when
+                    there are several; under ``jax.distributed`` each process runs
+                    its share of the batches (module docstring)
     max_strain      axial strain to load to
     stop_stress_ratio  stop a batch once all its members fell below this fraction
                     of their peak (None: run to ``max_strain``); shorter curves
@@ -364,6 +375,11 @@ def sweep(specimen, base_params, samples: dict, *, test=lab.UCS, batch_size=16, 
     n_dev = len(devs) if devs else 1
     place = _placer(devs)
     per, n_batches = _layout(n, batch_size, n_dev)
+    n_proc, proc = jax.process_count(), jax.process_index()
+    if n_batches < n_proc:
+        raise InputError(f"{n} samples make {n_batches} batch(es) of {per}, fewer than the "
+                         f"{n_proc} processes; lower batch_size")
+    mine = [k for k in range(n_batches) if k % n_proc == proc]
 
     rows, curves = [], []
     steps = 0
@@ -372,11 +388,13 @@ def sweep(specimen, base_params, samples: dict, *, test=lab.UCS, batch_size=16, 
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=n_batches, desc=f"sweep {test.name}", unit="batch", leave=False)
+        bar = tqdm(total=len(mine), desc=f"sweep {test.name}", unit="batch", leave=False)
     plan = None
+    taken = []
     try:
-        for k in range(n_batches):
+        for k in mine:
             idx, real = _batch_indices(n, per, k)
+            taken.append(idx[:real])
             su = test.setup(specimen, _take(params, idx), dt=dt, **options)
             su = su.replace(state=place(su.state), params=place(su.params),
                             frame=place(su.frame))
@@ -397,8 +415,10 @@ def sweep(specimen, base_params, samples: dict, *, test=lab.UCS, batch_size=16, 
     wall = time.perf_counter() - t_start
 
     table = SweepTable()
+    taken = np.concatenate(taken)
+    table["sample"] = taken
     for name, v in samples.items():
-        table[name] = v.copy()
+        table[name] = v[taken].copy()
     cols = SUMMARY_COLUMNS + (("tensile_strength",) if "tensile_strength" in rows[0] else ())
     for c in cols:
         table[c] = np.concatenate([np.asarray(r[c], np.float64) for r in rows])
@@ -408,15 +428,51 @@ def sweep(specimen, base_params, samples: dict, *, test=lab.UCS, batch_size=16, 
         table[key] = np.concatenate([_pad_nan(c[j], r_max) for c in curves])
     table.attrs = dict(test=test.name, parameters=list(samples), n_devices=n_dev, dt=dt,
                        wall_time=wall, batch_size=per, n_batches=n_batches, steps=steps,
-                       member_steps_per_second=n * steps / wall,
+                       member_steps_per_second=taken.size * steps / wall,
+                       n_samples=n, process_index=proc, process_count=n_proc,
                        loading_rate=float(plan.option("loading_rate")),
                        max_strain=float(max_strain),
                        confining_stress=float(options.get("confining_stress") or 0.0),
                        record_every=int(plan.record_every), damping=str(plan.damping),
                        n_particles=n_particles)
     if out is not None:
+        out = pathlib.Path(out)
+        if n_proc > 1:
+            out = out.with_name(f"{out.stem}.process{proc}of{n_proc}{out.suffix}")
         save_sweep(out, table)
     return table
+
+
+def merge_sweeps(parts, out=None) -> SweepTable:
+    """One table from the shares of a multi-process sweep (tables or HDF5 paths
+    written by :func:`sweep`): rows in sample order, curves padded with NaN to
+    the longest.  Raises ``InputError`` when a sample is missing or repeated."""
+    tables = [p if isinstance(p, SweepTable) else load_sweep(p) for p in parts]
+    if not tables:
+        raise InputError("merge_sweeps needs at least one table")
+    n = int(tables[0].attrs.get("n_samples", sum(len(t["sample"]) for t in tables)))
+    order = np.concatenate([np.asarray(t["sample"]) for t in tables])
+    if sorted(order.tolist()) != list(range(n)):
+        missing = sorted(set(range(n)) - set(order.tolist()))
+        raise InputError(f"the parts hold samples {sorted(order.tolist())}, not 0..{n - 1} "
+                         f"once each (missing {missing})")
+    rank = np.argsort(order)
+    r_max = max(np.asarray(t["strain"]).shape[1] for t in tables)
+    merged = SweepTable()
+    for key in tables[0]:
+        cols = [np.asarray(t[key]) for t in tables]
+        if cols[0].ndim == 2:
+            cols = [_pad_nan(c, r_max) for c in cols]
+        merged[key] = np.concatenate(cols)[rank]
+    attrs = dict(tables[0].attrs)
+    attrs.update(wall_time=max(float(t.attrs["wall_time"]) for t in tables),
+                 n_devices=sum(int(t.attrs["n_devices"]) for t in tables),
+                 process_index=0, process_count=len(tables))
+    attrs["member_steps_per_second"] = n * float(attrs["steps"]) / attrs["wall_time"]
+    merged.attrs = attrs
+    if out is not None:
+        save_sweep(out, merged)
+    return merged
 
 
 def _pad_nan(a, r):

@@ -10,8 +10,9 @@ Two kinds of target, both in SI units:
   1/sqrt(points) so the curve counts as one; then the relative peak-stress error
   and the relative error of the pre-peak slope.
 * :class:`Scalar`: one measured figure with its uncertainty, e.g. the UCS of a
-  series of specimens (``Scalar("peak_stress", 200e6, 10e6)``) or a Brazilian
-  strength (``Scalar("tensile_strength", 9e6, 1e6)``).  Its residual
+  series of specimens (``Scalar("peak_stress", 200e6, 10e6)``), a Brazilian
+  strength (``Scalar("tensile_strength", 9e6, 1e6)``), Young's modulus or
+  Poisson's ratio (``Scalar("poisson_ratio", 0.26, 0.02)``).  Its residual
   (:func:`scalar_residuals`) is (simulated - value) / sigma.
 
 :func:`curve_loss` is the sum of squares of :func:`curve_residuals`: the mean
@@ -41,6 +42,9 @@ class Target(NamedTuple):
     modulus_window    (lo, hi) strains of that fit
     stress_sigma      stated uncertainty of each stress point [Pa], or None (the
                       residuals are then relative to the peak stress)
+    lateral_strain    (K,) or None: the lateral strain at the same points, compression
+                      positive (negative as the specimen bulges), as in the lab tests'
+                      histories; it makes Poisson's ratio identifiable
     """
 
     strain: np.ndarray
@@ -50,6 +54,7 @@ class Target(NamedTuple):
     modulus: float
     modulus_window: tuple
     stress_sigma: float | None = None
+    lateral_strain: np.ndarray | None = None
 
 
 class LossWeights(NamedTuple):
@@ -59,12 +64,14 @@ class LossWeights(NamedTuple):
     post_peak: float = 1.0
     peak: float = 1.0
     modulus: float = 1.0
+    lateral: float = 1.0
 
 
 #: scalar quantities a :class:`Scalar` may name, and the history entry each is read from
 SCALAR_QUANTITIES = {
     "peak_stress": "axial_stress",          # UCS or the peak of a biaxial / tension test [Pa]
     "youngs_modulus": "axial_stress",       # slope over 10 %..40 % of the peak [Pa]
+    "poisson_ratio": "lateral_strain",      # -d(lateral strain)/d(axial strain), same window
     "tensile_strength": "tensile_strength_indirect",   # Brazilian 2 P / (pi D t) [Pa]
 }
 
@@ -87,9 +94,15 @@ def check_scalar(t: Scalar) -> Scalar:
         if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
             raise InputError(f"scalar target {t.quantity}.{name} must be a positive number, "
                              f"got {v!r}")
-    if t.value < 1e4:
-        raise InputError(f"scalar target {t.quantity} = {t.value!r} Pa: stresses and moduli "
-                         f"are in Pa (this looks like MPa or GPa)")
+    if t.quantity == "poisson_ratio":
+        if not t.value < 0.5:
+            raise InputError(f"scalar target poisson_ratio = {t.value!r} must be below 0.5")
+    elif t.quantity == "youngs_modulus" and t.value < 1e6:
+        raise InputError(f"scalar target youngs_modulus = {t.value!r} Pa: moduli are in Pa "
+                         f"(this looks like GPa: multiply by 1e9)")
+    elif t.value < 1e4:
+        raise InputError(f"scalar target {t.quantity} = {t.value!r} Pa: stresses are in Pa "
+                         f"(this looks like MPa: multiply by 1e6)")
     return Scalar(t.quantity, float(t.value), float(t.sigma))
 
 
@@ -99,24 +112,29 @@ def check_scalar(t: Scalar) -> Scalar:
 MAX_TARGET_STRAIN = 0.05
 
 
-def load_target(source, *, strain_column=0, stress_column=1, stress_sigma=None,
-                allow_large_strain=False) -> Target:
+def load_target(source, *, strain_column=0, stress_column=1, lateral_column=None,
+                stress_sigma=None, allow_large_strain=False) -> Target:
     """A :class:`Target` from ``(strain, stress)`` arrays, a dict with ``strain``
     and ``stress`` (e.g. a simulated curve or history; ``axial_strain`` /
-    ``axial_stress`` also work), or a CSV file of two columns (strain, stress in
-    Pa; a header line is allowed).  Malformed input raises ``InputError``, and so
+    ``axial_stress`` also work; ``lateral_strain`` is taken when present), or a
+    CSV file of two columns (strain, stress in Pa; a header line is allowed) or
+    three (``lateral_column=2``: the lateral strain, compression positive).  Malformed input raises ``InputError``, and so
     does a strain column in percent (strain above :data:`MAX_TARGET_STRAIN`) or
     a stress column in MPa (peak below 1e4 Pa)."""
     if isinstance(source, Target):
         return source
+    lateral = None
     if isinstance(source, (str, pathlib.Path)):
-        strain, stress = _read_csv(pathlib.Path(source), strain_column, stress_column)
+        cols = _read_csv(pathlib.Path(source), strain_column, stress_column, lateral_column)
+        strain, stress = cols[0], cols[1]
+        lateral = cols[2] if lateral_column is not None else None
     elif isinstance(source, dict):
         key_e = "strain" if "strain" in source else "axial_strain"
         key_s = "stress" if "stress" in source else "axial_stress"
         if key_e not in source or key_s not in source:
             raise InputError(f"target dict needs 'strain' and 'stress', got keys {sorted(source)}")
         strain, stress = source[key_e], source[key_s]
+        lateral = source.get("lateral_strain")
     else:
         try:
             strain, stress = source
@@ -128,6 +146,14 @@ def load_target(source, *, strain_column=0, stress_column=1, stress_sigma=None,
     if strain.shape != stress.shape:
         raise InputError(f"target strain and stress differ in length: {strain.size} vs "
                          f"{stress.size}")
+    if lateral is not None:
+        lateral = np.asarray(lateral, np.float64).ravel()
+        if lateral.shape != strain.shape or not np.all(np.isfinite(lateral)):
+            raise InputError(f"target lateral_strain must be {strain.size} finite values, got "
+                             f"{lateral.size} (finite: {bool(np.all(np.isfinite(lateral)))})")
+        if float(np.max(np.abs(lateral))) > MAX_TARGET_STRAIN and not allow_large_strain:
+            raise InputError(f"target lateral strain reaches {float(np.max(np.abs(lateral)))!r}:"
+                             f" strain is dimensionless; divide a percent column by 100")
     if strain.size < 5:
         raise InputError(f"target curve needs at least 5 points, got {strain.size}")
     for name, a in (("strain", strain), ("stress", stress)):
@@ -156,29 +182,33 @@ def load_target(source, *, strain_column=0, stress_column=1, stress_sigma=None,
     if not np.isfinite(modulus):
         modulus, window = peak / max(float(strain[k]), 1e-300), (0.0, float(strain[k]))
     return Target(strain, stress, peak, float(strain[k]), modulus, window,
-                  None if stress_sigma is None else float(stress_sigma))
+                  None if stress_sigma is None else float(stress_sigma), lateral)
 
 
-def _read_csv(path, ce, cs):
+def _read_csv(path, ce, cs, cl=None):
     if not path.exists():
         raise InputError(f"target file {str(path)!r} does not exist")
     rows = []
+    header = False
     with open(path, newline="") as f:
         for n, row in enumerate(csv.reader(f)):
             if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
                 continue
+            cols = (ce, cs) if cl is None else (ce, cs, cl)
             try:
-                rows.append((float(row[ce]), float(row[cs])))
+                rows.append(tuple(float(row[c]) for c in cols))
             except ValueError:
-                if rows:   # only the first line may be a header
-                    raise InputError(f"{path}: line {n + 1} is not two numbers: {row!r}") from None
+                if rows or header:   # only the first line may be a header
+                    raise InputError(f"{path}: line {n + 1} is not {len(cols)} numbers: "
+                                     f"{row!r}") from None
+                header = True
             except IndexError:
                 raise InputError(f"{path}: line {n + 1} has {len(row)} column(s), need "
-                                 f"{max(ce, cs) + 1}: {row!r}") from None
+                                 f"{max(cols) + 1}: {row!r}") from None
     if not rows:
         raise InputError(f"{path} holds no (strain, stress) rows")
     a = np.asarray(rows)
-    return a[:, 0], a[:, 1]
+    return tuple(a[:, c] for c in range(a.shape[1]))
 
 
 # ----------------------------------------------------------------------------- residuals
@@ -192,9 +222,12 @@ def _window_slope(strain, stress, lo, hi):
             / jnp.maximum(jnp.sum(jnp.where(sel, (strain - em) ** 2, 0.0)), 1e-300))
 
 
-def curve_residuals(strain, stress, target: Target, weights: LossWeights = LossWeights()):
+def curve_residuals(strain, stress, target: Target, weights: LossWeights = LossWeights(),
+                    lateral=None):
     """Residuals (K + 2,) of one simulated curve ``(strain, stress)`` (R,) against
-    ``target``: K interpolated stress differences, then the peak and the modulus.
+    ``target``: K interpolated stress differences, then the peak and the modulus;
+    with a target lateral strain, K more: the simulated ``lateral`` (R,) strain
+    minus the target's, over its largest magnitude, weighted as the stresses.
 
     The simulated stress is interpolated (linearly) onto the target strains; a
     target point outside the simulated range gets residual 0.  Point i carries
@@ -213,14 +246,25 @@ def curve_residuals(strain, stress, target: Target, weights: LossWeights = LossW
     peak = jnp.sqrt(weights.peak) * (jnp.max(stress) / target.peak_stress - 1.0)
     slope = _window_slope(strain, stress, *target.modulus_window)
     modulus = jnp.sqrt(weights.modulus) * (slope / target.modulus - 1.0)
-    return jnp.concatenate([points, peak[None], modulus[None]])
+    parts = [points, peak[None], modulus[None]]
+    if target.lateral_strain is not None:
+        if lateral is None:
+            raise InputError("the target has a lateral strain column but the test records "
+                             "none")
+        lt = jnp.asarray(target.lateral_strain)
+        scale_l = max(float(np.max(np.abs(target.lateral_strain))), 1e-12)
+        sim_l = jnp.interp(et, strain, lateral)
+        parts.append(jnp.sqrt(weights.lateral * w / jnp.maximum(jnp.sum(w), 1e-300))
+                     * (sim_l - lt) / scale_l)
+    return jnp.concatenate(parts)
 
 
-def curve_loss(strain, stress, target: Target, weights: LossWeights = LossWeights()):
+def curve_loss(strain, stress, target: Target, weights: LossWeights = LossWeights(),
+               lateral=None):
     """Sum of squares of :func:`curve_residuals`: the weighted mean-square stress
     misfit over the peak squared, plus ``peak`` x (relative peak error)^2 and
     ``modulus`` x (relative slope error)^2."""
-    return jnp.sum(curve_residuals(strain, stress, target, weights) ** 2)
+    return jnp.sum(curve_residuals(strain, stress, target, weights, lateral) ** 2)
 
 
 def simulated_scalar(history: dict, quantity: str):
@@ -233,16 +277,21 @@ def simulated_scalar(history: dict, quantity: str):
             raise InputError("a tensile_strength target needs a Brazilian test "
                              "(lab.BRAZILIAN) set-up")
         return jnp.max(history["tensile_strength_indirect"])
-    if quantity == "youngs_modulus":
+    if quantity in ("youngs_modulus", "poisson_ratio"):
         stress, strain = history["axial_stress"], history["axial_strain"]
         k = jnp.argmax(stress)
         peak = jax.lax.stop_gradient(stress[k])
         lo_f, hi_f = MODULUS_WINDOW
         pre = jnp.arange(stress.shape[0]) <= k
-        sel_lo = jnp.min(jnp.where(pre & (stress >= lo_f * peak), strain, jnp.inf))
-        sel_hi = jnp.max(jnp.where(pre & (stress <= hi_f * peak), strain, -jnp.inf))
-        return _window_slope(strain, stress, jax.lax.stop_gradient(sel_lo),
-                             jax.lax.stop_gradient(sel_hi))
+        lo = jax.lax.stop_gradient(
+            jnp.min(jnp.where(pre & (stress >= lo_f * peak), strain, jnp.inf)))
+        hi = jax.lax.stop_gradient(
+            jnp.max(jnp.where(pre & (stress <= hi_f * peak), strain, -jnp.inf)))
+        if quantity == "youngs_modulus":
+            return _window_slope(strain, stress, lo, hi)
+        if "lateral_strain" not in history:
+            raise InputError("a poisson_ratio target needs a test that records lateral strain")
+        return -_window_slope(strain, history["lateral_strain"], lo, hi)
     raise InputError(f"unknown scalar quantity {quantity!r}")
 
 

@@ -29,7 +29,7 @@ def test_calibrate_command_fits_a_csv_curve(tmp_path, capsys):
 
     setup, params, curve, true, start = calibrate.demo_problem(loading_rate=6.4e-5)
     csv = tmp_path / "lab.csv"
-    csv.write_text("strain,stress_Pa\n" + "".join(f"{e!r},{s!r}\n" for e, s in
+    csv.write_text("strain,stress_Pa\n" + "".join(f"{float(e)!r},{float(s)!r}\n" for e, s in
                                                  zip(curve["strain"], curve["stress"])))
     cfg = tmp_path / "cal.toml"
     cfg.write_text('[material]\nE = 39e9\n[fit]\nparameters = ["E"]\nsteps = 8\n'
@@ -42,7 +42,7 @@ def test_calibrate_command_fits_a_csv_curve(tmp_path, capsys):
     assert (tmp_path / "out" / "calibration.png").stat().st_size > 10_000
     assert "E " in capsys.readouterr().out
     pct = tmp_path / "pct.csv"
-    pct.write_text("".join(f"{100 * e!r},{s!r}\n" for e, s in zip(curve["strain"],
-                                                                  curve["stress"])))
+    pct.write_text("".join(f"{100 * float(e)!r},{float(s)!r}\n" for e, s in
+                           zip(curve["strain"], curve["stress"])))
     assert cli.main(["calibrate", str(pct), "--small", "--out", str(tmp_path / "o2")]) == 2
     assert "percent" in capsys.readouterr().err

@@ -285,15 +285,23 @@ def _max_rel(a, b):
                         initial=0.0))
 
 
-def test_sweep_on_4_devices_matches_1_device(specimen, base, samples, table, four_device_table):
+@pytest.fixture(scope="module")
+def one_per_batch(specimen, base, samples):
+    """The sweep on one device with one member per batch: the reference of the
+    sharded and the multi-process runs (the same compiled arithmetic)."""
+    return sw.sweep(specimen, base, samples, shard=False, batch_size=1,
+                    damping=lab.local(ALPHA), **RUN)
+
+
+def test_sweep_on_4_devices_matches_1_device(specimen, base, samples, table, four_device_table,
+                                             one_per_batch):
     """4 host devices, one member each, give the table of one device with one
     member per batch (the same compiled arithmetic) to rtol 1e-9 in every
     column (measured: bitwise equal); against the default 4-member batch the
     time step, the parameters and the strains are equal, and the differences of
     the stresses (amplified round-off) are printed."""
     t4 = four_device_table
-    t1 = sw.sweep(specimen, base, samples, shard=False, batch_size=1, damping=lab.local(ALPHA),
-                  **RUN)
+    t1 = one_per_batch
     assert t4.attrs["n_devices"] == 4 and t1.attrs["n_devices"] == 1
     assert t4.attrs["batch_size"] == 4 and t1.attrs["batch_size"] == 1
     assert t4.attrs["dt"] == t1.attrs["dt"] == table.attrs["dt"]
@@ -310,3 +318,60 @@ def test_sweep_on_4_devices_matches_1_device(specimen, base, samples, table, fou
     print("4 devices vs 1 device (batch 4):",
           {k: f"{_max_rel(t4[k], table[k]):.2e}" for k in ("youngs_modulus", "peak_stress",
                                                           "critical_strain", "stress")})
+
+
+# ----------------------------------------------------------------------------- 2 processes
+PROCESS_SCRIPT = textwrap.dedent("""
+    import sys
+    import jax
+    jax.distributed.initialize(coordinator_address=sys.argv[4], num_processes=2,
+                               process_id=int(sys.argv[5]))
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+    from jdem import lab, materials as lt, sweep as sw
+    from jdem.state import Bonds, Particles
+
+    assert jax.process_count() == 2 and len(jax.local_devices()) == 1
+    spec_path, out, run = sys.argv[1], sys.argv[2], __import__("json").loads(sys.argv[3])
+    d = np.load(spec_path)
+    spec = (Particles(**{k: d["p_" + k] for k in Particles._fields}),
+            Bonds(**{k: d["b_" + k] for k in Bonds._fields}))
+    samples = sw.grid(eps_lim=run.pop("eps_lims"), strength=run.pop("strengths"))
+    run["damping"] = lab.local(run.pop("alpha"))
+    sw.sweep(spec, lt.rock_params(2, kappa=3e-3), samples, batch_size=1, out=out, **run)
+    jax.distributed.shutdown()
+""")
+
+
+def test_sweep_over_two_processes_matches_one(specimen, tmp_path, one_per_batch):
+    """Two processes under jax.distributed (one CPU device each) share the four
+    batches of one member, each writes its part, and merge_sweeps gives the
+    one-process table with one member per batch to rtol 1e-9 in every column."""
+    import socket
+
+    spec_path = tmp_path / "specimen.npz"
+    np.savez(spec_path, **{f"p_{k}": np.asarray(v) for k, v in specimen.particles._asdict().items()},
+             **{f"b_{k}": np.asarray(v) for k, v in specimen.bonds._asdict().items()})
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    run = dict(RUN, eps_lims=list(EPS_LIMS), strengths=list(STRENGTHS), alpha=ALPHA)
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+    procs = [subprocess.Popen([sys.executable, "-c", PROCESS_SCRIPT, str(spec_path),
+                               str(tmp_path / "sweep.h5"), json.dumps(run), f"127.0.0.1:{port}",
+                               str(i)], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True) for i in range(2)]
+    for p in procs:
+        _, err = p.communicate(timeout=900)
+        assert p.returncode == 0, err[-3000:]
+    parts = sorted(tmp_path.glob("sweep.process*of2.h5"))
+    assert [p.name for p in parts] == ["sweep.process0of2.h5", "sweep.process1of2.h5"]
+    shares = [sw.load_sweep(p) for p in parts]
+    assert [t["sample"].tolist() for t in shares] == [[0, 2], [1, 3]]
+    merged = sw.merge_sweeps(parts)
+    assert list(merged) == list(one_per_batch)
+    for key in one_per_batch:
+        assert _max_rel(merged[key], one_per_batch[key]) <= 1e-9, key
+    with pytest.raises(InputError, match="missing"):
+        sw.merge_sweeps(parts[:1])
