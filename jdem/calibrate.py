@@ -380,7 +380,6 @@ def _n_data(term):
     return n * term.setup.n_members
 
 
-@functools.lru_cache(maxsize=8)
 def _jit_jacobian(fn, mode):
     if mode == "forward":
         def jac(u, args):
@@ -458,13 +457,18 @@ def _adam(terms, plist, u, names, lims, record, history, steps, *, jacobian, lea
     state = opt.init(u)
     stall, last = 0, (min(history["loss"]) if history["loss"] else np.inf)
     k = 0
+    vg_fn = None
     while k < steps:
-        fn = functools.partial(_residual_fn, names=tuple(names), lims=lims, terms=tuple(terms))
+        if vg_fn is None:   # built again after the neighbour list grew
+            fn = functools.partial(_residual_fn, names=tuple(names), lims=lims,
+                                   terms=tuple(terms))
+            vg_fn = _value_and_grad(fn, jacobian)
         args = tuple((t.setup, p) for t, p in zip(terms, plist))
-        loss, aux, g = _value_and_grad(fn, jacobian)(u, args)
+        loss, aux, g = vg_fn(u, args)
         if bool(np.any(np.asarray(aux["overflowed"]))):
             terms = [t._replace(setup=lab.grow(t.setup)) if bool(o) else t
                      for t, o in zip(terms, np.asarray(aux["overflowed"]))]
+            vg_fn = None
             continue
         loss = float(loss)
         if not np.isfinite(loss):
@@ -483,7 +487,6 @@ def _adam(terms, plist, u, names, lims, record, history, steps, *, jacobian, lea
 
 
 
-@functools.lru_cache(maxsize=8)
 def _value_and_grad(fn, mode):
     if mode == "forward":
         def vg(u, args):

@@ -116,7 +116,7 @@ def _with(boundary_fn, data):
     return None if boundary_fn is None else (boundary_fn, data)
 
 
-@functools.lru_cache(maxsize=64)
+@functools.lru_cache(maxsize=8)   # each program holds memory mappings
 def _compiled_chunk(config, n_records, record_every, observe, batched, boundary_fn=None):
     def chunk(state, params, data):
         return rollout(state, params, config, n_records, record_every, observe,

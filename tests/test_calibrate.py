@@ -281,24 +281,46 @@ def test_calibration_three_parameters_on_the_targets_packing(tmp_path):
     np.testing.assert_allclose(back["correlation"], res.correlation)
 
 
-def test_interrupted_calibration_resumes_to_the_same_result(tmp_path):
-    """E from +40 %: a fit stopped after 2 iterations (its checkpoint) and resumed
-    ends where the uninterrupted fit ends (within 0.1 %), and keeps the first two
-    iterations in its history."""
+def test_interrupted_calibration_resumes_from_its_checkpoint(tmp_path):
+    """E from +40 %: a fit stopped after 2 iterations leaves a checkpoint; a fit
+    resumed from it keeps those 2 iterations in its history, continues from the
+    best point so far (its first new loss equals the best, to the round-off of
+    the bounded transform), and two resumptions of
+    the same checkpoint give the same result bit for bit.  The solver's damping
+    is not in the checkpoint: a resumed Levenberg-Marquardt fit restarts it at
+    the saved point, so it does not retrace the uninterrupted fit's path."""
     model, params = model_and_params()
     start = dict(E=1.4 * TRUE["E"])
     kw = dict(params=params, progress=False, require_quasi_static=False)
-    whole = cb.calibrate(model, target_curve(), start, steps=20, **kw)
-    part = cb.calibrate(model, target_curve(), start, steps=2,
-                        checkpoint=tmp_path / "ck.h5", **kw)
+    part = cb.calibrate(model, target_curve(), start, steps=2, checkpoint=tmp_path / "ck.h5",
+                        **kw)
     assert part.steps == 2 and (tmp_path / "ck.h5").exists()
-    resumed = cb.calibrate(model, target_curve(), start, steps=20, resume=tmp_path / "ck.h5",
-                           **kw)
-    print(whole.values, whole.steps, resumed.values, resumed.steps)
-    np.testing.assert_allclose(resumed.history["loss"][:2], part.history["loss"])
-    assert resumed.steps > 2
-    assert abs(resumed.values["E"] / whole.values["E"] - 1) < 1e-3
-    assert abs(whole.values["E"] / TRUE["E"] - 1) < 0.01
+    saved = cb.load_calibration(tmp_path / "ck.h5")
+    assert saved["steps"] == 2 and saved["values"] == pytest.approx(part.values)
+    runs = [cb.calibrate(model, target_curve(), start, steps=5, resume=tmp_path / "ck.h5", **kw)
+            for _ in range(2)]
+    print(part.history["loss"], runs[0].history["loss"], runs[0].values)
+    for res in runs:
+        assert res.steps == 5
+        np.testing.assert_array_equal(res.history["loss"][:2], part.history["loss"])
+        assert res.history["loss"][2] <= min(part.history["loss"]) * (1 + 1e-3)
+        assert res.loss <= part.loss
+    assert runs[0].values == runs[1].values
+    np.testing.assert_array_equal(runs[0].history["loss"], runs[1].history["loss"])
+    assert abs(runs[0].values["E"] / TRUE["E"] - 1) < abs(start["E"] / TRUE["E"] - 1)
+
+
+def test_adam_with_forward_mode_gradient_lowers_the_loss():
+    """The first-order alternative: three Adam steps on E from +40 %, the gradient
+    2 J^T r by forward mode, lower the loss and move E towards the truth."""
+    model, params = model_and_params()
+    res = cb.calibrate(model, target_curve(), dict(E=1.4 * TRUE["E"]), params=params,
+                       method="adam", steps=3, learning_rate=0.2, progress=False,
+                       require_quasi_static=False)
+    print(res.history)
+    assert res.method == "adam" and res.jacobian == "forward" and res.steps == 3
+    assert res.history["loss"][-1] < res.history["loss"][0]
+    assert res.values["E"] < 1.4 * TRUE["E"]
 
 
 def test_ensemble_member_that_diverges_is_isolated():
@@ -367,7 +389,9 @@ def test_recovery_three_parameters_on_a_different_packing():
     from E +40 %, strength -35 %, kappa +50 %: E within 3 %, strength within 5 %,
     kappa within 15 %, in at most 100 steps.
 
-    Why it fails (measured): Adam stops after 70 steps at E +3.5 %, strength
+    Measured with the earlier Adam fit (not re-measured since calibrate moved to
+    Levenberg-Marquardt; this slow check runs on request).  Why it fails: Adam stopped
+    after 70 steps at E +3.5 %, strength
     +11.0 %, kappa +74 % (loss 2.6e-3).  With the true parameters packing 3 peaks at
     11.37 MPa and packing 2 at 13.50 MPa, so packing 3 needs a higher strength to
     reproduce the target curve.  Between packings, the peak stress with the true

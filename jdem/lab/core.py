@@ -248,7 +248,7 @@ def checked_curve(setup: Setup, params: Params | None = None, *, max_grow=4):
 
 
 # ----------------------------------------------------------------------------- host loop
-@functools.lru_cache(maxsize=64)
+@functools.lru_cache(maxsize=8)   # each program holds memory mappings
 def _compiled_records(plan: Plan, n: int):
     def records(state, params, frame, k0):
         return jax.lax.scan(_block(plan, params, frame), state, k0 + jnp.arange(n))
