@@ -37,14 +37,17 @@ from jdem.targets import Scalar  # noqa: E402
 
 OUT = pathlib.Path(__file__).parent / "results" / "granite_calibration"
 GRANITE = dict(E=69e9, nu=0.26, ucs=200e6, bts=9e6)
+DENSITY = 2650.0   # [kg/m^3]
 TARGETS_UCS = (Scalar("youngs_modulus", 69e9, 3.45e9), Scalar("poisson_ratio", 0.26, 0.02),
                Scalar("peak_stress", 200e6, 10e6))
 TARGETS_BTS = (Scalar("tensile_strength", 9e6, 0.45e6),)
 
 
 def setups(params, rate):
-    rect = generate("rectangle", (0.004, 0.008), 0.2e-3, 0.35e-3, seed=2, target_coordination=4.5)
-    disc = generate("disc", 0.006, 0.2e-3, 0.35e-3, seed=2, target_coordination=4.5)
+    rect = generate("rectangle", (0.004, 0.008), 0.2e-3, 0.35e-3, seed=2, density=DENSITY,
+                    target_coordination=4.5)
+    disc = generate("disc", 0.006, 0.2e-3, 0.35e-3, seed=2, density=DENSITY,
+                    target_coordination=4.5)
     kw = dict(loading_rate=rate, stiffness_margin=2.0)
     ucs = lab.UCS.setup(rect, params, max_strain=6e-3, **kw)
     bts = lab.BRAZILIAN.setup(disc, params, max_strain=4e-3, **kw)
@@ -75,8 +78,7 @@ def main():
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
-    params = rock_params(2, E=50e9, nu=0.2, T0=20e6, c0=60e6, phi_deg=30.0, kappa=3e-3,
-                         density=2650.0)
+    params = rock_params(2, E=50e9, nu=0.2, T0=20e6, c0=60e6, phi_deg=30.0, kappa=3e-3)
     scan = ratio_scan(params, args.rate)
     print("UCS / BTS over c0 / T0 (T0 = 20 MPa):")
     for r, u, b, q in zip(scan["c0_over_T0"], scan["ucs"], scan["bts"], scan["ucs_over_bts"]):
