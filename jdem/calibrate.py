@@ -27,6 +27,7 @@ import functools
 import math
 import pathlib
 import time
+import warnings
 from typing import NamedTuple
 
 import jax
@@ -181,7 +182,9 @@ class CalibrationResult(NamedTuple):
     intervals     name -> (lo, hi) 95 % interval
     correlation   (k, k) correlation matrix of the fitted parameters (names order)
     poorly_determined  name -> why the data do not determine it
-    diverged      list of (iteration, term, member) of ensemble members that diverged"""
+    diverged      list of (iteration, term, member) of ensemble members that diverged
+    warnings      what makes the fit doubtful, e.g. a test whose fitted curve has no
+                  peak before its end (:func:`peakless`)"""
 
     values: dict
     loss: float
@@ -199,6 +202,7 @@ class CalibrationResult(NamedTuple):
     correlation: np.ndarray = np.zeros((0, 0))
     poorly_determined: dict = {}
     diverged: list = []
+    warnings: list = []
 
 
 def _uncertainty(J, r, u, names, lims, n_fit):
@@ -362,6 +366,9 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
     r, J = _jacobian(fn, ub, args, jacobian)
     std, intervals, corr, why = _uncertainty(J, r, np.asarray(ub), names, lims, n_data)
     curves1 = _curves(terms, plist, best[1], "fit")
+    doubts = peakless(terms, [h for h, _ in curves1])
+    for msg in doubts:
+        warnings.warn(msg, stacklevel=2)
     curves = _merge_curves(terms, curves0, curves1)
     fitted = material(plist[0], best[1])
     res = CalibrationResult(values=best[1], loss=best[0], start=dict(start),
@@ -369,10 +376,34 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
                             steps=len(history["loss"]), converged=converged, params=fitted,
                             curves=curves, wall_time=time.time() - t0, method=method,
                             jacobian=jacobian, std_errors=std, intervals=intervals,
-                            correlation=corr, poorly_determined=why, diverged=diverged)
+                            correlation=corr, poorly_determined=why, diverged=diverged,
+                            warnings=doubts)
     if out is not None:
         save_calibration(out, res)
     return res
+
+
+def peakless(terms, histories) -> list:
+    """Messages for the terms whose fitted run peaks at its last record: the
+    "peak" stress of a curve or a peak / strength target is then only the
+    stress where the loading stopped, not a failure (load further: a larger
+    ``max_strain``).  ``histories``: one NumPy history per term."""
+    out = []
+    for k, (term, hist) in enumerate(zip(terms, histories)):
+        needs_peak = isinstance(term.target, Target) or any(
+            t.quantity in ("peak_stress", "tensile_strength") for t in term.target)
+        if not needs_peak:
+            continue
+        key = "tensile_strength_indirect" if "tensile_strength_indirect" in hist \
+            else "axial_stress"
+        stress = np.atleast_2d(np.asarray(hist[key]))
+        last = [m for m in range(stress.shape[0])
+                if int(np.argmax(stress[m])) == stress.shape[1] - 1]
+        if last:
+            out.append(f"term {k} ({term.setup.plan.test.name}): the fitted curve of member(s) "
+                       f"{last} has no peak before the end of loading, so its peak is the "
+                       f"stress where loading stopped; raise max_strain")
+    return out
 
 
 def _n_data(term):
@@ -552,13 +583,14 @@ def _save(path, res):
     attrs.update({f"undetermined_{k}": v for k, v in res.poorly_determined.items()})
     attrs.update(loss=res.loss, steps=res.steps, converged=res.converged,
                  wall_time=res.wall_time, method=res.method, jacobian=res.jacobian,
-                 names=list(res.values), diverged=[list(d) for d in res.diverged])
+                 names=list(res.values), diverged=[list(d) for d in res.diverged],
+                 warnings=list(res.warnings))
     return io.save_run(path, params=res.params, history=history, attrs=attrs)
 
 
 def load_calibration(path) -> dict:
     """``{values, start, loss, steps, converged, history, curves, params, method,
-    jacobian, std_errors, intervals, correlation, poorly_determined}`` from
+    jacobian, std_errors, intervals, correlation, poorly_determined, warnings}`` from
     :func:`save_calibration` (or a checkpoint)."""
     rd = io.load_run(path)
     a = rd.attrs or {}
@@ -568,6 +600,7 @@ def load_calibration(path) -> dict:
                 start={k[6:]: float(v) for k, v in a.items() if k.startswith("start_")},
                 loss=float(a["loss"]), steps=int(a["steps"]), converged=bool(a["converged"]),
                 method=a.get("method"), jacobian=a.get("jacobian"),
+                warnings=list(a.get("warnings", [])),
                 std_errors={k[7:]: float(v) for k, v in a.items() if k.startswith("stderr_")},
                 intervals={k[5:]: tuple(v) for k, v in a.items() if k.startswith("ci95_")},
                 poorly_determined={k[13:]: v for k, v in a.items()
@@ -593,6 +626,8 @@ def report(res: CalibrationResult, true_values=None) -> str:
         lines.append(line)
     for n, why in res.poorly_determined.items():
         lines.append(f"  not determined: {n}: {why}")
+    for msg in res.warnings:
+        lines.append(f"  warning: {msg}")
     if res.diverged:
         lines.append(f"  {len(res.diverged)} ensemble member run(s) diverged (iteration, "
                      f"term, member): {res.diverged[:5]}")

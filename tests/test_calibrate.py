@@ -323,6 +323,21 @@ def test_adam_with_forward_mode_gradient_lowers_the_loss():
     assert res.values["E"] < 1.4 * TRUE["E"]
 
 
+def test_a_fitted_curve_without_a_peak_is_reported():
+    """A curve (or a peak / strength target) whose run peaks at its last record
+    has no failure in it: ``peakless`` names the term and the member."""
+    model, _ = model_and_params()
+    rising = dict(axial_stress=np.linspace(0, 1e7, 50)[None].repeat(2, 0))
+    rising["axial_stress"][0, 30:] = 5e6                     # member 0 peaks inside
+    ens_term = cb.Term(model, (cb.Scalar("peak_stress", 1e7, 1e6),), cb.LossWeights())
+    msgs = cb.peakless([ens_term], [rising])
+    assert len(msgs) == 1 and "[1]" in msgs[0] and "max_strain" in msgs[0]
+    peaked = dict(axial_stress=np.sin(np.linspace(0, 3, 50)) * 1e7)
+    assert cb.peakless([ens_term], [peaked]) == []
+    modulus_only = cb.Term(model, (cb.Scalar("youngs_modulus", 3e10, 1e9),), cb.LossWeights())
+    assert cb.peakless([modulus_only], [dict(axial_stress=np.linspace(0, 1e7, 50))]) == []
+
+
 def test_ensemble_member_that_diverges_is_isolated():
     """Two packings in one vmapped run, member 1 with a time step 30x too large:
     it diverges, its residuals count as a 100 % misfit (1 / sqrt(2) each), and
