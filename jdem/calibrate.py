@@ -318,7 +318,7 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
     if checkpoint is None and out is not None:
         checkpoint = pathlib.Path(out).with_suffix(".checkpoint.h5")
     t0 = time.time()
-    curves0 = _curves(terms, plist, {n: float(start[n]) for n in names}, "start")
+    curves0 = _curves(terms, plist, {n: float(start[n]) for n in names})
     terms = [t._replace(setup=c[1]) for t, c in zip(terms, curves0)]
     u = jnp.asarray([_to_internal(values0[n], *lims[n]) for n in names])
     n_data = sum(_n_data(t) for t in terms)
@@ -365,7 +365,7 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
     args = tuple((t.setup, p) for t, p in zip(terms, plist))
     r, J = _jacobian(fn, ub, args, jacobian)
     std, intervals, corr, why = _uncertainty(J, r, np.asarray(ub), names, lims, n_data)
-    curves1 = _curves(terms, plist, best[1], "fit")
+    curves1 = _curves(terms, plist, best[1])
     doubts = peakless(terms, [h for h, _ in curves1])
     for msg in doubts:
         warnings.warn(msg, stacklevel=2)
@@ -539,7 +539,7 @@ def _value_and_grad(fn, mode):
 
 
 # ----------------------------------------------------------------------------- curves, files
-def _curves(terms, plist, values, label):
+def _curves(terms, plist, values):
     """[(history as NumPy, grown set-up)] per term at ``values``."""
     return [lab.checked_curve(t.setup, material(p, values)) for t, p in zip(terms, plist)]
 

@@ -239,6 +239,22 @@ def test_batched_base_params_rejected(specimen):
 
 
 # ----------------------------------------------------------------------------- 4 devices
+# The specimen travels to a subprocess as .npz; LOAD_RUN rebuilds it and the run
+# settings there (argv: specimen path, output path, JSON of the run).
+def _write_specimen(specimen, path):
+    np.savez(path, **{f"p_{k}": np.asarray(v) for k, v in specimen.particles._asdict().items()},
+             **{f"b_{k}": np.asarray(v) for k, v in specimen.bonds._asdict().items()})
+
+
+LOAD_RUN = """
+spec_path, out, run = sys.argv[1], sys.argv[2], __import__("json").loads(sys.argv[3])
+d = np.load(spec_path)
+spec = (Particles(**{k: d["p_" + k] for k in Particles._fields}),
+        Bonds(**{k: d["b_" + k] for k in Bonds._fields}))
+samples = sw.grid(eps_lim=run.pop("eps_lims"), strength=run.pop("strengths"))
+run["damping"] = lab.local(run.pop("alpha"))
+"""
+
 SCRIPT = textwrap.dedent("""
     import sys
     import jax
@@ -248,12 +264,7 @@ SCRIPT = textwrap.dedent("""
     from jdem.state import Bonds, Particles
 
     assert len(jax.devices()) == 4, jax.devices()
-    spec_path, out, run = sys.argv[1], sys.argv[2], __import__("json").loads(sys.argv[3])
-    d = np.load(spec_path)
-    spec = (Particles(**{k: d["p_" + k] for k in Particles._fields}),
-            Bonds(**{k: d["b_" + k] for k in Bonds._fields}))
-    samples = sw.grid(eps_lim=run.pop("eps_lims"), strength=run.pop("strengths"))
-    run["damping"] = lab.local(run.pop("alpha"))
+""") + LOAD_RUN + textwrap.dedent("""
     table = sw.sweep(spec, lt.rock_params(2, kappa=3e-3), samples, shard=True, out=out, **run)
     assert table.attrs["n_devices"] == 4
 """)
@@ -265,8 +276,7 @@ def four_device_table(specimen, tmp_path_factory):
     (shard=True: one member per device); the specimen travels as .npz."""
     tmp = tmp_path_factory.mktemp("devices")
     spec_path = tmp / "specimen.npz"
-    np.savez(spec_path, **{f"p_{k}": np.asarray(v) for k, v in specimen.particles._asdict().items()},
-             **{f"b_{k}": np.asarray(v) for k, v in specimen.bonds._asdict().items()})
+    _write_specimen(specimen, spec_path)
     out = tmp / "sweep4.h5"
     run = dict(RUN, eps_lims=list(EPS_LIMS), strengths=list(STRENGTHS), alpha=ALPHA)
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
@@ -332,12 +342,7 @@ PROCESS_SCRIPT = textwrap.dedent("""
     from jdem.state import Bonds, Particles
 
     assert jax.process_count() == 2 and len(jax.local_devices()) == 1
-    spec_path, out, run = sys.argv[1], sys.argv[2], __import__("json").loads(sys.argv[3])
-    d = np.load(spec_path)
-    spec = (Particles(**{k: d["p_" + k] for k in Particles._fields}),
-            Bonds(**{k: d["b_" + k] for k in Bonds._fields}))
-    samples = sw.grid(eps_lim=run.pop("eps_lims"), strength=run.pop("strengths"))
-    run["damping"] = lab.local(run.pop("alpha"))
+""") + LOAD_RUN + textwrap.dedent("""
     sw.sweep(spec, lt.rock_params(2, kappa=3e-3), samples, batch_size=1, out=out, **run)
     jax.distributed.shutdown()
 """)
@@ -350,8 +355,7 @@ def test_sweep_over_two_processes_matches_one(specimen, tmp_path, one_per_batch)
     import socket
 
     spec_path = tmp_path / "specimen.npz"
-    np.savez(spec_path, **{f"p_{k}": np.asarray(v) for k, v in specimen.particles._asdict().items()},
-             **{f"b_{k}": np.asarray(v) for k, v in specimen.bonds._asdict().items()})
+    _write_specimen(specimen, spec_path)
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
