@@ -1,5 +1,7 @@
 """Absorbing (non-reflecting) boundaries for dynamic DEM analyses (001 §2–4).
 
+Citations ("001 eq 4") refer to the documents listed in REFERENCES.md.
+
 A truncated model must let outgoing waves leave; 001 turns the continuum
 viscous, viscoelastic and free-field boundary conditions into forces on the
 discs of a straight model boundary (2D, unit thickness, SI units):

@@ -1,5 +1,7 @@
 """Linked-bar strain-softening bond (002 §1, eq 1-13, 16).
 
+Citations ("002 eq 5") refer to the documents listed in REFERENCES.md.
+
 A bond joins two particles 1 = ``i`` and 2 = ``j`` by a bar of length
 L = R1 + R2 and cross-section A_c (002 eq 1).  Forces and moments are updated
 incrementally and explicitly (002 eq 3, 4); the trial normal force is limited by

@@ -1,5 +1,7 @@
 """Unbonded contact laws between discs / spheres (000 §4.2, §6.4).
 
+Citations ("000 eq 4-6") refer to the documents listed in REFERENCES.md.
+
 * ``linear``: normal force k_n * overlap, incremental tangential spring
   dF_t = -k_t du_t (000 eq 4-1, 4-3), Coulomb limit |F_t| <= mu F_n.
 * ``hertz``: F_n = H * overlap^(3/2) with H = 2E / (3(1 - nu^2)) sqrt(R1 R2 / (R1 + R2))

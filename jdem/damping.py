@@ -1,5 +1,7 @@
 """Damping for dynamic relaxation (000 §3.2).
 
+Citations ("000 eq 3-19") refer to the documents listed in REFERENCES.md.
+
 * Local non-viscous damping (000 eq 3-19, Cundall's local adaptive damping): each
   degree of freedom's unbalanced force F is reduced by alpha |F| sign(v), i.e.
   opposite to the current velocity, so the damping force vanishes at rest and

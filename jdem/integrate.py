@@ -1,5 +1,7 @@
 """One explicit dynamic-relaxation step (000 §2.3.1–2.3.2).
 
+Citations ("000 eq 2-15") refer to the documents listed in REFERENCES.md.
+
 The force–displacement cycle of 000 eq 2-4..2-17:
 
 1. refresh the neighbour list if some particle moved half the skin;

@@ -1,5 +1,7 @@
 """Small vector helpers shared by contacts, bonds and walls, generic over 2D / 3D.
 
+Citations ("000 eq 4-11") refer to the documents listed in REFERENCES.md.
+
 In 2D an angular velocity or torque is a scalar about the out-of-plane axis
 (shape ``(...,)``); in 3D it is a vector (shape ``(..., 3)``).  These helpers
 hide that difference so force laws are written once.

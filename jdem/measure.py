@@ -1,5 +1,7 @@
 """Measurements on a state: energies, coordination, wall stresses.
 
+Citations ("000 eq 4-44") refer to the documents listed in REFERENCES.md.
+
 All functions are pure and jit-able; energies are in J (per metre of thickness
 in 2D).  Linked-bar quantities (bond strain energy, fracture degree) live in
 :mod:`jdem.bond`.

@@ -1,5 +1,6 @@
 """Cell-list neighbour search with a fixed capacity and overflow detection
 (000 §2.3.3 "分格检索", §4.5.1).
+Citations ("000 §2.3.3") refer to the documents listed in REFERENCES.md.
 
 The domain is cut into a regular grid of cells of edge ``Config.cell_size``
 (>= largest diameter + skin).  Each particle is checked only against particles

@@ -1,5 +1,6 @@
 """Rock specimen generation: random packings of discs / spheres, compacted with
 the jdem engine and bonded (002 §1.4, §2).
+Citations ("002 §1.4") refer to the documents listed in REFERENCES.md.
 
 Method
 ------

@@ -1,5 +1,6 @@
 """Rigid planar walls: prescribed velocity or servo-controlled normal stress
 (000 §4.4.1, servo law 000 eq 4-69).
+Citations ("000 eq 4-69") refer to the documents listed in REFERENCES.md.
 
 A wall is an infinite plane through ``point`` with unit ``normal`` pointing into
 the particle domain.  Particle–wall contacts use the same contact law as

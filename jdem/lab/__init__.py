@@ -1,5 +1,6 @@
 """Laboratory tests, each defined once (:mod:`jdem.lab.core`), run as a host
 loop (:func:`run`) or as a pure function of ``Params`` (:func:`curve`).
+Citations ("002 §1.3") refer to the documents listed in REFERENCES.md.
 
     from jdem import lab
     from jdem.materials import rock_params

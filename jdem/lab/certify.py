@@ -1,5 +1,7 @@
 """The quasi-static certificate: run a test at its rate and slower, compare.
 
+Citations ("000 §3.2") refer to the documents listed in REFERENCES.md.
+
 Dynamic relaxation (000 §2.3, §3.2) seeks the static response; a curve that
 still changes when the loading is slowed describes the loading rate and the
 damping, not the rock.  :func:`certify` runs the set-up at its loading rate

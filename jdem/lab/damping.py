@@ -1,5 +1,7 @@
 """Damping of the lab tests: one quasi-static damping for every way of running.
 
+Citations ("000 eq 3-19") refer to the documents listed in REFERENCES.md.
+
 Two kinds (:class:`Damping`), chosen per set-up and recorded in its plan:
 
 * :func:`smooth` (the default, used by the host loop, the pure curve, sweeps

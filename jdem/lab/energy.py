@@ -1,7 +1,8 @@
 """The strain-energy ratio lambda = L_p / L_e of 002 §1.4 (eq 15-17): a bonded 2D
 block at rest under a uniaxial stress, its bond strain energy against that of
 an elastic continuum of the same size, E and nu.  Damping: as given (the seed
-study used local damping 0.8, :func:`jdem.lab.local`)."""
+study used local damping 0.8, :func:`jdem.lab.local`).
+Citations ("002 eq 16") refer to the documents listed in REFERENCES.md."""
 from __future__ import annotations
 
 import numpy as np

@@ -1,5 +1,6 @@
 """Broken bonds and damage of a state, for failure patterns (002 Fig. 12) and
-damage maps (002 Fig. 13)."""
+damage maps (002 Fig. 13).
+Citations ("002 Fig. 12") refer to the documents listed in REFERENCES.md."""
 from __future__ import annotations
 
 import numpy as np

@@ -5,6 +5,7 @@ shear of two bonded spheres / discs, run through the real engine
 (:func:`single_bond_summary`).  Damping: the seed's local damping (000 eq
 3-19, alpha = 0.8 from :func:`jdem.materials.seed_params`); the shear test
 needs it to keep the free normal degree of freedom quasi-static.
+Citations ("002 §1.3") refer to the documents listed in REFERENCES.md.
 
 Specimen (002 §1.3, Fig. 4): two particles of radius ``radius`` stacked along
 ``y`` and touching, bonded by one linked bar (``bond.create_bonds``).  Particle 0

@@ -1,5 +1,7 @@
 """Key figures of a lab-test history, and how far a curve is from quasi-static.
 
+Citations ("000 §2.3") refer to the documents listed in REFERENCES.md.
+
 * :func:`fit_modulus` -- the one secant-modulus fit: least-squares slope of
   stress against strain over the pre-peak records with 10 %..40 % of the peak.
 * :func:`peak_summary` -- peak stress, critical strain, modulus, Poisson ratio,
