@@ -28,7 +28,7 @@ import numpy as np
 from jdem import integrate, neighbors
 from jdem.measure import basic_observables
 from jdem.state import Config, Params, State, empty_bonds, no_walls
-from jdem.validate import InputError, check_params
+from jdem.validate import InputError, check_materials, check_params, check_particles, require_int
 
 
 class RunResult(NamedTuple):
@@ -70,7 +70,12 @@ def make_config(particles, *, contact_model="linear", skin=None, **overrides) ->
 
 def make_state(particles, config: Config | None = None, *, walls=None, bonds=None,
                contact_model="linear", skin=None):
-    """Assemble a ``State`` and size its neighbour list.  Returns ``(state, config)``."""
+    """Assemble a ``State`` and size its neighbour list.  Returns ``(state, config)``.
+
+    Raises :class:`jdem.validate.InputError` when no particle is valid or two
+    valid particles share a centre (:func:`jdem.validate.check_particles`).
+    """
+    check_particles(particles)
     n, dim = particles.pos.shape
     if config is None:
         config = make_config(particles, contact_model=contact_model, skin=skin)
@@ -148,9 +153,10 @@ def advance(state: State, params: Params, config: Config, n_steps, *, batched=Fa
 def _check_inputs(state: State, params: Params, config: Config, batched: bool, check_dt: bool):
     from jdem.timestep import check_timestep
 
-    check_params(params, None)
     if state.particles.pos.shape[-1] != config.dim:
         raise InputError(f"state has dimension {state.particles.pos.shape[-1]} but config.dim = {config.dim}")
+    check_params(params, config.dim)
+    check_materials(state, params)
     if check_dt:
         if batched:
             for b in range(state.step.shape[0]):
@@ -178,6 +184,8 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
                   module-level function so compiled chunks are cached, ``data``
                   a pytree (batched runs: leading batch axis)
     """
+    record_every = require_int("record_every", record_every, 1)
+    n_steps = require_int("n_steps", n_steps, 0)
     if n_steps % record_every:
         raise InputError(f"n_steps = {n_steps} must be a multiple of record_every = {record_every}")
     _check_inputs(state, params, config, batched, check_dt)

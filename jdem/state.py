@@ -1,5 +1,7 @@
 """State, parameter and configuration containers.
 
+Citations ("002 eq 3") refer to the documents listed in REFERENCES.md.
+
 jdem keeps three kinds of input apart (see the design notes):
 
 * ``State``  — everything that evolves in time (particles, contacts, walls, bonds).
@@ -29,7 +31,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from jdem.validate import check_params, check_particle_input
+from jdem.validate import InputError, check_config, check_params, check_particle_input
 
 Array = jnp.ndarray
 
@@ -263,21 +265,7 @@ class Config:
     max_per_cell: int = 8
 
     def __post_init__(self):
-        if self.dim not in (2, 3):
-            raise ValueError(f"Config.dim must be 2 or 3, got {self.dim!r}")
-        if self.contact_model not in CONTACT_MODELS:
-            raise ValueError(
-                f"Config.contact_model must be one of {CONTACT_MODELS}, got {self.contact_model!r}")
-        if len(self.grid_origin) != self.dim or len(self.grid_shape) != self.dim:
-            raise ValueError(
-                f"Config.grid_origin / grid_shape need {self.dim} entries, got "
-                f"{self.grid_origin!r} / {self.grid_shape!r}")
-        if int(self.max_per_cell) < 1:
-            raise ValueError(f"Config.max_per_cell must be >= 1, got {self.max_per_cell!r}")
-        for name in ("skin", "cell_size"):
-            v = float(getattr(self, name))
-            if not np.isfinite(v) or v <= 0:
-                raise ValueError(f"Config.{name} must be a positive finite length, got {v!r}")
+        check_config(self, CONTACT_MODELS)
 
     @property
     def n_cells(self) -> int:
@@ -324,15 +312,18 @@ def make_particles(pos, radius, *, density=2500.0, vel=None, angvel=None, materi
     Mass and moment of inertia follow from ``density`` [kg/m^3]: discs of unit
     thickness in 2D (m = rho pi r^2, I = m r^2 / 2), spheres in 3D
     (m = rho 4/3 pi r^3, I = 2/5 m r^2).  ``capacity`` >= n pads with invalid rows.
-    Raises ``ValueError`` naming the field for negative / non-finite radii etc.
+    Raises :class:`jdem.validate.InputError` naming the field and the value for
+    an empty set, wrongly shaped arrays, negative / non-finite radii, negative
+    material indices, coincident centres etc.
     """
     pos = np.asarray(pos, dtype=np.float64)
     radius = np.asarray(radius, dtype=np.float64)
     n, dim = pos.shape if pos.ndim == 2 else (None, None)
-    check_particle_input(pos, radius, density)
+    check_particle_input(pos, radius, density, vel=vel, angvel=angvel, material=material,
+                         fixed_vel=fixed_vel, fixed_rot=fixed_rot)
     capacity = n if capacity is None else int(capacity)
     if capacity < n:
-        raise ValueError(f"capacity must be >= the number of particles {n}, got {capacity}")
+        raise InputError(f"capacity must be >= the number of particles {n}, got {capacity}")
     rs = rot_shape(dim)
     density = np.broadcast_to(np.asarray(density, dtype=np.float64), (n,))
     if dim == 2:

@@ -1,5 +1,7 @@
 """Critical time step and density scaling (000 §3.3).
 
+Citations ("000 eq 3-24") refer to the documents listed in REFERENCES.md.
+
 000 eq 3-24 gives the stability limit of the central-difference scheme for one
 mass on one spring, dt < 2 sqrt(m / k) = 2 / omega.  For a particle with many
 contacts we bound its highest frequency by the Gershgorin row sum of the
@@ -11,6 +13,27 @@ stiffness matrix: neighbours moving against it double the load on its springs,
 and the critical step is ``min_i 2 / omega_i`` (never larger than the true
 limit).  000 eq 3-26 recommends a tenth of the smallest period,
 dt = T_min / 10 = 2 pi / (10 omega_max); :func:`recommended` returns that.
+
+Dashpots shrink the stable step.  The dashpot forces use the velocity of the
+last half step, v+ = v- + dt (-k x - c v-) / m, and for one mass, spring and
+dashpot (damping ratio zeta, g = c / m = 2 zeta omega) this update is stable for
+
+    dt <= (2 / omega) (sqrt(1 + zeta^2) - zeta) = 2 / (sqrt(omega^2 + g^2 / 4) + g / 2)
+
+(there an eigenvalue of the update map of (x, v) leaves the unit circle at -1).
+The damping rate of each particle is bounded by the same row sum,
+
+    g_i <= 2 sum_c c_c / m_i + viscous_damping   (rotation: the bond shear
+                                                  dashpots at arm L / 2, over I_i)
+
+with c = 2 zeta sqrt(m* k) for the normal contact and wall dashpots
+(``Params.contact_damping``) and the normal and shear dashpots of intact bonds
+(``Params.bond_damping``), m* the reduced mass; the critical step is the
+smallest of these per-particle limits.  The step therefore falls as the
+dashpots grow (zeta = 1: 0.41 of the undamped step, zeta = 50: 0.01), so no
+upper bound on the damping ratios is needed: :func:`check_timestep` refuses a
+step above the damped limit.  Local non-viscous damping (000 eq 3-19) is not
+counted.
 
 Density scaling (000 §3.3.2, "virtual density"): for quasi-static problems the
 inertial mass may be raised so that a larger step is stable; the weight keeps
@@ -29,7 +52,7 @@ from jdem import bond
 from jdem.walls import wall_law
 from jdem.kinematics import segment_add
 from jdem.state import Config, Params, State
-from jdem.validate import InputError
+from jdem.validate import InputError, check_materials
 
 
 def _stiffness_sums(state: State, params: Params, config: Config):
@@ -58,34 +81,79 @@ def _stiffness_sums(state: State, params: Params, config: Config):
     return k_tr, k_rot
 
 
+def _dashpot_sums(state: State, params: Params, config: Config):
+    """Per-particle sums of the dashpot coefficients c = 2 zeta sqrt(m* k) acting on
+    translation [N s/m] and rotation [N m s] (N,) each."""
+    p = state.particles
+    n = p.pos.shape[0]
+    i, j = state.contacts.i, state.contacts.j
+    kn, _, _ = contact.pair_stiffness(state.contacts, p, params, config)
+    m_sum = p.mass[i] + p.mass[j]
+    m_eff = p.mass[i] * p.mass[j] / jnp.where(m_sum > 0, m_sum, 1.0)
+    c = 2.0 * params.contact_damping * jnp.sqrt(m_eff * kn)   # contact.dashpot
+    c_tr = segment_add(c, i, n) + segment_add(c, j, n)
+    c_rot = jnp.zeros_like(c_tr)
+    w = state.walls
+    if w.point.shape[0]:
+        _, touch, _, wkn, _ = wall_law(w, p, params, config)
+        cw = 2.0 * params.contact_damping * jnp.sqrt(p.mass[None] * jnp.where(touch, wkn, 0.0))
+        c_tr = c_tr + jnp.sum(cw, axis=0)
+    b = state.bonds
+    if b.i.shape[0]:
+        g = bond.bond_geometry(b, p, params, config.dim)
+        live = b.valid & ~b.broken                           # bond dashpots: intact only
+        mb = p.mass[b.i] * p.mass[b.j] / jnp.where(live, p.mass[b.i] + p.mass[b.j], 1.0)
+        visc = lambda k: jnp.where(live, 2.0 * params.bond_damping * jnp.sqrt(
+            jnp.where(live, mb * k, 0.0)), 0.0)
+        cn, cs = visc(g.kn), visc(g.ks)
+        c_tr = c_tr + segment_add(cn + cs, b.i, n) + segment_add(cn + cs, b.j, n)
+        rot = cs * g.length**2 / 4
+        c_rot = c_rot + segment_add(rot, b.i, n) + segment_add(rot, b.j, n)
+    return c_tr, c_rot
+
+
+def _damped_limit(w2, g):
+    """2 / (sqrt(w2 + g^2 / 4) + g / 2): the stable step of a mass-spring-dashpot
+    with omega^2 = w2 and c / m = g; infinite where w2 = 0 (no spring)."""
+    spring = w2 > 0
+    half = 0.5 * g
+    root = jnp.sqrt(jnp.where(spring, w2, 1.0) + half * half) + half
+    return jnp.where(spring, 2.0 / root, jnp.inf)
+
+
 @functools.partial(jax.jit, static_argnames=("config",))
 def critical_timestep(state: State, params: Params, config: Config):
-    """Largest stable step for the current contacts and bonds [s] (scalar).
+    """Largest stable step for the current contacts and bonds [s] (scalar),
+    including their dashpots and the viscous damping (module docstring).
 
     Infinite when nothing touches; use :func:`nominal_critical_timestep` then.
     """
     p = state.particles
     k_tr, k_rot = _stiffness_sums(state, params, config)
-    w2 = jnp.maximum(2.0 * k_tr / p.mass, 2.0 * k_rot / p.inertia)
-    w2 = jnp.where(p.valid & ~jnp.all(p.fixed_vel, axis=-1), w2, 0.0)
-    wmax = jnp.sqrt(jnp.max(w2, initial=0.0))
-    return jnp.where(wmax > 0, 2.0 / jnp.where(wmax > 0, wmax, 1.0), jnp.inf)
+    c_tr, c_rot = _dashpot_sums(state, params, config)
+    visc = params.viscous_damping
+    dt_tr = _damped_limit(2.0 * k_tr / p.mass, 2.0 * c_tr / p.mass + visc)
+    dt_rot = _damped_limit(2.0 * k_rot / p.inertia, 2.0 * c_rot / p.inertia + visc)
+    dt = jnp.where(p.valid & ~jnp.all(p.fixed_vel, axis=-1), jnp.minimum(dt_tr, dt_rot), jnp.inf)
+    return jnp.min(dt, initial=jnp.inf)
 
 
 def nominal_critical_timestep(particles, params: Params, config: Config, *, coordination=None,
                               overlap_ratio=0.01):
     """Critical step assuming every particle has ``coordination`` contacts with
     like particles (default 4 in 2D, 6 in 3D); for Hertz at an overlap of
-    ``overlap_ratio`` times the radius.  Use it before contacts exist."""
+    ``overlap_ratio`` times the radius.  Use it before contacts exist.  The
+    contact dashpots and the viscous damping count as in :func:`critical_timestep`."""
     p = particles
     z = coordination or (4 if config.dim == 2 else 6)
     overlap = overlap_ratio * p.radius
     _, kn, kt = contact.normal_law(overlap, 0.5 * p.radius, p.material, p.material, params,
                                    config.contact_model)
-    w2 = 2.0 * z * (kn + kt) / p.mass
-    w2 = jnp.maximum(w2, 2.0 * z * kt * 2 * p.radius**2 / p.inertia)
-    wmax = jnp.sqrt(jnp.max(jnp.where(p.valid, w2, 0.0)))
-    return 2.0 / wmax
+    visc = params.viscous_damping
+    c = 2.0 * params.contact_damping * jnp.sqrt(0.5 * p.mass * kn)  # like pairs: m* = m / 2
+    dt_tr = _damped_limit(2.0 * z * (kn + kt) / p.mass, 2.0 * z * c / p.mass + visc)
+    dt_rot = _damped_limit(2.0 * z * kt * 2 * p.radius**2 / p.inertia, visc)
+    return jnp.min(jnp.where(p.valid, jnp.minimum(dt_tr, dt_rot), jnp.inf))
 
 
 def recommended(critical):
@@ -94,17 +162,25 @@ def recommended(critical):
 
 
 def check_timestep(state: State, params: Params, config: Config):
-    """Raise ``InputError`` naming ``params.dt`` if it exceeds the critical step."""
+    """Raise ``InputError`` naming ``params.dt`` if it exceeds the critical step
+    (damping included; the message names the damping fields that are on).  The
+    material indices are checked first (:func:`jdem.validate.check_materials`)."""
+    check_materials(state, params)
     dt = np.asarray(params.dt)
     crit = np.asarray(critical_timestep(state, params, config))
     if not np.all(np.isfinite(crit)):
         crit = np.minimum(crit, np.asarray(nominal_critical_timestep(state.particles, params, config)))
     if np.any(dt > crit):
         k = int(np.argmax(np.asarray(dt - crit).reshape(-1)))
+        damped = [f"params.{name} = {float(np.max(np.asarray(getattr(params, name)))):g}"
+                  for name in ("contact_damping", "bond_damping", "viscous_damping")
+                  if np.any(np.asarray(getattr(params, name)) > 0)]
+        with_damping = (f", which includes the damping {', '.join(damped)} (dt_crit = "
+                        f"(2 / omega)(sqrt(1 + zeta^2) - zeta))" if damped else "")
         raise InputError(
             f"params.dt = {float(np.asarray(dt).reshape(-1)[k % dt.size]):.4g} s exceeds the critical "
-            f"time step {float(np.asarray(crit).reshape(-1)[k % crit.size]):.4g} s (000 eq 3-24); "
-            f"use at most jdem.timestep.recommended(critical) = "
+            f"time step {float(np.asarray(crit).reshape(-1)[k % crit.size]):.4g} s (000 eq 3-24)"
+            f"{with_damping}; use at most jdem.timestep.recommended(critical) = "
             f"{float(recommended(np.min(crit))):.4g} s")
     return crit
 
@@ -117,6 +193,8 @@ def scale_density(state: State, params: Params, config: Config, target_dt, *, sa
     By default each particle is scaled only as much as it needs; ``uniform=True``
     scales every particle by the largest factor any of them needs, keeping the
     mass ratios.  Gravitational mass is untouched.  Quasi-static problems only.
+    Only the springs are counted: with dashpots on, :func:`check_timestep` may
+    still refuse ``target_dt``.
     """
     p = state.particles
     k_tr, k_rot = _stiffness_sums(state, params, config)

@@ -254,7 +254,7 @@ def test_bad_particle_input_names_field_and_value():
         jdem.make_params(dim=2, friction=np.nan)
     with pytest.raises(jdem.InputError, match=r"params.dt must be > 0"):
         jdem.make_params(dim=2, dt=-1.0)
-    with pytest.raises(jdem.InputError, match=r"params.local_damping must lie in \[0.0, 1.0\], got 1.5"):
+    with pytest.raises(jdem.InputError, match=r"params.local_damping must lie in \[0.0, 1.0\), got 1.5"):
         jdem.make_params(dim=2, local_damping=1.5)
 
 
