@@ -380,9 +380,28 @@ def _start_value(name, mat):
             "gamma_lim": mat["kappa"], "strength": mat["T0"], "kappa": mat["kappa"]}[name]
 
 
+def _csv_width(path) -> int:
+    """Columns of the first numeric row of a CSV file (0 if unreadable: the
+    target loader then says what is wrong)."""
+    import csv
+
+    try:
+        with open(path, newline="") as f:
+            for row in csv.reader(f):
+                try:
+                    float(row[0]), float(row[1])
+                except (ValueError, IndexError):
+                    continue
+                return len(row)
+    except (OSError, UnicodeDecodeError):
+        return 0
+    return 0
+
+
 def calibrate_cli(curve, config=None, out="results/calibrate", small=False, progress=True):
     """``jdem calibrate CURVE.csv``: fit the ``[fit] parameters`` of a bonded
-    specimen in the UCS test to a laboratory curve (strain, stress [Pa]); writes
+    specimen in the UCS test to a laboratory curve (strain, stress [Pa], and a
+    third column, the lateral strain, when the file has one); writes
     ``calibration.png`` and ``calibration.h5`` to ``out``.  Returns the result."""
     import jax
 
@@ -392,7 +411,7 @@ def calibrate_cli(curve, config=None, out="results/calibrate", small=False, prog
 
     cfg = calibrate_settings(config, small)
     sp, mat, ld, fit = cfg["specimen"], cfg["material"], cfg["loading"], cfg["fit"]
-    target = calibrate.load_target(curve)
+    target = calibrate.load_target(curve, lateral_column=2 if _csv_width(curve) >= 3 else None)
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
@@ -445,7 +464,9 @@ def main(argv=None):
                    help="reduced specimen (1 cm x 2 cm, ~500 discs) and a faster platen")
     c = sub.add_parser("calibrate", help="fit micro-parameters to a laboratory stress-strain "
                                           "curve (CSV: strain, stress in Pa)")
-    c.add_argument("curve", help="CSV file: strain [-], axial stress [Pa]; one header line allowed")
+    c.add_argument("curve", help="CSV file: strain [-], axial stress [Pa] and optionally the "
+                                 "lateral strain [-] (empty where not read); one header line "
+                                 "allowed")
     c.add_argument("--config", default=None, help="TOML file: [specimen], [material] (start "
                                                   "values), [loading], [fit]")
     c.add_argument("--out", default="results/calibrate")

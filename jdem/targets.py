@@ -44,7 +44,11 @@ class Target(NamedTuple):
                       residuals are then relative to the peak stress)
     lateral_strain    (K,) or None: the lateral strain at the same points, compression
                       positive (negative as the specimen bulges), as in the lab tests'
-                      histories; it makes Poisson's ratio identifiable
+                      histories; it makes Poisson's ratio identifiable.  NaN where
+                      there is no reading (a gauge that failed at the peak): those
+                      points carry no lateral residual.  Past the peak the simulated
+                      lateral strain is the extent of a breaking specimen, not a
+                      gauge reading, so a target usually stops it at the peak.
     """
 
     strain: np.ndarray
@@ -148,12 +152,16 @@ def load_target(source, *, strain_column=0, stress_column=1, lateral_column=None
                          f"{stress.size}")
     if lateral is not None:
         lateral = np.asarray(lateral, np.float64).ravel()
-        if lateral.shape != strain.shape or not np.all(np.isfinite(lateral)):
-            raise InputError(f"target lateral_strain must be {strain.size} finite values, got "
-                             f"{lateral.size} (finite: {bool(np.all(np.isfinite(lateral)))})")
-        if float(np.max(np.abs(lateral))) > MAX_TARGET_STRAIN and not allow_large_strain:
-            raise InputError(f"target lateral strain reaches {float(np.max(np.abs(lateral)))!r}:"
-                             f" strain is dimensionless; divide a percent column by 100")
+        read = ~np.isnan(lateral)
+        if lateral.shape != strain.shape or np.any(np.isinf(lateral)) or np.sum(read) < 3:
+            raise InputError(f"target lateral_strain must be {strain.size} values (NaN where "
+                             f"there is no reading, at least 3 readings), got {lateral.size} "
+                             f"with {int(np.sum(read))} readings and "
+                             f"{int(np.sum(np.isinf(lateral)))} infinite")
+        if float(np.max(np.abs(lateral[read]))) > MAX_TARGET_STRAIN and not allow_large_strain:
+            raise InputError(f"target lateral strain reaches "
+                             f"{float(np.max(np.abs(lateral[read])))!r}: strain is "
+                             f"dimensionless; divide a percent column by 100")
     if strain.size < 5:
         raise InputError(f"target curve needs at least 5 points, got {strain.size}")
     for name, a in (("strain", strain), ("stress", stress)):
@@ -196,7 +204,8 @@ def _read_csv(path, ce, cs, cl=None):
                 continue
             cols = (ce, cs) if cl is None else (ce, cs, cl)
             try:
-                rows.append(tuple(float(row[c]) for c in cols))
+                rows.append(tuple(float(row[c]) for c in (ce, cs))
+                            + (() if cl is None else (_reading(row[cl]),)))
             except ValueError:
                 if rows or header:   # only the first line may be a header
                     raise InputError(f"{path}: line {n + 1} is not {len(cols)} numbers: "
@@ -209,6 +218,11 @@ def _read_csv(path, ce, cs, cl=None):
         raise InputError(f"{path} holds no (strain, stress) rows")
     a = np.asarray(rows)
     return tuple(a[:, c] for c in range(a.shape[1]))
+
+
+def _reading(cell: str) -> float:
+    """A lateral-strain cell: a number, or empty for "no reading" (NaN)."""
+    return float(cell) if cell.strip() else float("nan")
 
 
 # ----------------------------------------------------------------------------- residuals
@@ -227,7 +241,8 @@ def curve_residuals(strain, stress, target: Target, weights: LossWeights = LossW
     """Residuals (K + 2,) of one simulated curve ``(strain, stress)`` (R,) against
     ``target``: K interpolated stress differences, then the peak and the modulus;
     with a target lateral strain, K more: the simulated ``lateral`` (R,) strain
-    minus the target's, over its largest magnitude, weighted as the stresses.
+    minus the target's over its largest magnitude, weighted as the stresses (points
+    without a reading, NaN, carry none).
 
     The simulated stress is interpolated (linearly) onto the target strains; a
     target point outside the simulated range gets residual 0.  Point i carries
@@ -251,10 +266,12 @@ def curve_residuals(strain, stress, target: Target, weights: LossWeights = LossW
         if lateral is None:
             raise InputError("the target has a lateral strain column but the test records "
                              "none")
-        lt = jnp.asarray(target.lateral_strain)
-        scale_l = max(float(np.max(np.abs(target.lateral_strain))), 1e-12)
+        read = ~np.isnan(target.lateral_strain)          # points with a reading
+        lt = jnp.asarray(np.where(read, target.lateral_strain, 0.0))
+        scale_l = max(float(np.max(np.abs(target.lateral_strain[read]))), 1e-12)
         sim_l = jnp.interp(et, strain, lateral)
-        parts.append(jnp.sqrt(weights.lateral * w / jnp.maximum(jnp.sum(w), 1e-300))
+        wl = w * read
+        parts.append(jnp.sqrt(weights.lateral * wl / jnp.maximum(jnp.sum(wl), 1e-300))
                      * (sim_l - lt) / scale_l)
     return jnp.concatenate(parts)
 

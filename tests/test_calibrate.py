@@ -224,6 +224,33 @@ def test_load_target_sources_and_errors(tmp_path):
         cb.load_target((e, s[:-1]))
 
 
+def test_lateral_strain_without_readings_carries_no_residual(tmp_path):
+    """A lateral-strain column may stop (a gauge that failed at the peak): empty
+    CSV cells / NaN are "no reading" and carry no residual; a column with fewer
+    than 3 readings is refused."""
+    e = np.linspace(0, 3e-3, 301)
+    s = 1e10 * e * np.exp(-e / 1e-3)
+    lat = -0.2 * e
+    f = tmp_path / "lat.csv"
+    f.write_text("strain,stress,lateral\n" + "".join(
+        f"{a},{b},{c if i <= 150 else ''}\n" for i, (a, b, c) in enumerate(zip(e, s, lat))))
+    t = cb.load_target(f, lateral_column=2)
+    assert np.all(np.isnan(t.lateral_strain[151:]))
+    assert np.all(np.isfinite(t.lateral_strain[:151]))
+    wrong_after = np.where(np.arange(e.size) <= 150, lat, 5 * lat)   # differs only unread
+    r_same = cb.curve_residuals(jnp.asarray(e), jnp.asarray(s), t, lateral=jnp.asarray(lat))
+    r_off = cb.curve_residuals(jnp.asarray(e), jnp.asarray(s), t,
+                               lateral=jnp.asarray(wrong_after))
+    np.testing.assert_allclose(r_same[-301:], 0.0, atol=1e-12)     # the lateral part
+    np.testing.assert_array_equal(r_off, r_same)
+    r_read = cb.curve_residuals(jnp.asarray(e), jnp.asarray(s), t, lateral=jnp.asarray(0.5 * lat))
+    assert float(jnp.sum(r_read ** 2)) > 0.01
+    few = np.full(e.size, np.nan)
+    few[:2] = 0.0
+    with pytest.raises(InputError, match="2 readings"):
+        cb.load_target(dict(strain=e, stress=s, lateral_strain=few))
+
+
 def test_curve_loss_interpolates_onto_target_strains():
     e = np.linspace(0, 3e-3, 301)
     s = 1e10 * e * np.exp(-e / 1e-3)
@@ -391,6 +418,36 @@ def test_scalar_targets_are_z_scores_and_terms_concatenate():
         cb._terms(model, cb.Scalar("ucs", 1e8, 1e7), cb.LossWeights())
     with pytest.raises(InputError, match="MPa"):
         cb._terms(model, cb.Scalar("peak_stress", 200.0, 10.0), cb.LossWeights())
+
+
+@pytest.mark.slow
+def test_poisson_ratio_from_the_lateral_strain_on_the_targets_packing():
+    """The issue's nu check: E and nu from E +40 %, nu -30 %, the target curve
+    with its mid-height gauge lateral strain up to the peak (NaN after it, as a
+    gauge that fails at the peak): E within 1 %, nu within 10 % in at most 20
+    iterations.
+
+    Measured (this 2-core CPU, 227 s): 18 iterations, E +0.003 %, nu -0.45 %.  The
+    macroscopic Poisson ratio of this 2D packing moves little with the bar's nu
+    (lateral / axial strain at half the peak: 0.154, 0.161, 0.168 for nu = 0.15,
+    0.22, 0.30), so nu needs the lateral curve to about 1 %.  From the other side
+    (E -30 %, nu +40 %) the fit stops after 13 iterations at E +0.2 %, nu +29 %,
+    loss 4.4e-4 instead of 1e-7, with E and nu flagged as correlated (+0.99):
+    there the stress-curve misfit of the pre-peak bond yields is a local minimum."""
+    model, params = model_and_params()
+    hist, _ = lab.checked_curve(model, cb.material(params, TRUE))
+    k = int(np.argmax(hist["axial_stress"]))
+    lateral = np.where(np.arange(hist["lateral_strain"].size) <= k, hist["lateral_strain"],
+                       np.nan)
+    target = dict(strain=hist["axial_strain"], stress=hist["axial_stress"],
+                  lateral_strain=lateral)
+    nu = float(params.bond_poisson)
+    res = cb.calibrate(model, target, dict(E=1.4 * TRUE["E"], nu=0.7 * nu), params=params,
+                       steps=20, progress=False, require_quasi_static=False)
+    print(cb.report(res, dict(E=TRUE["E"], nu=nu)))
+    assert res.steps <= 20
+    assert abs(res.values["E"] / TRUE["E"] - 1) < 0.01
+    assert abs(res.values["nu"] / nu - 1) < 0.10
 
 
 @pytest.mark.slow

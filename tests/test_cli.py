@@ -46,3 +46,20 @@ def test_calibrate_command_fits_a_csv_curve(tmp_path, capsys):
                            zip(curve["strain"], curve["stress"])))
     assert cli.main(["calibrate", str(pct), "--small", "--out", str(tmp_path / "o2")]) == 2
     assert "percent" in capsys.readouterr().err
+
+
+def test_calibrate_reads_a_lateral_strain_column_when_the_csv_has_one(tmp_path):
+    """Two columns: a stress curve; three: the third is the lateral strain, its
+    empty cells "no reading"."""
+    from jdem import calibrate
+
+    e = np.linspace(0, 3e-3, 101)
+    s = 1e10 * e * np.exp(-e / 1e-3)
+    two, three = tmp_path / "two.csv", tmp_path / "three.csv"
+    two.write_text("strain,stress\n" + "".join(f"{a},{b}\n" for a, b in zip(e, s)))
+    three.write_text("strain,stress,lateral\n" + "".join(
+        f"{a},{b},{-0.2 * a if i < 50 else ''}\n" for i, (a, b) in enumerate(zip(e, s))))
+    assert cli._csv_width(two) == 2 and cli._csv_width(three) == 3
+    assert cli._csv_width(tmp_path / "missing.csv") == 0
+    t = calibrate.load_target(three, lateral_column=2 if cli._csv_width(three) >= 3 else None)
+    assert np.isfinite(t.lateral_strain[:50]).all() and np.isnan(t.lateral_strain[50:]).all()

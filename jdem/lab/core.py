@@ -59,7 +59,8 @@ class LabTest(NamedTuple):
               servo areas); traced
     boundary  ``boundary(state, params, frame) -> (state, force (N, d))`` applied
               every step (:func:`jdem.integrate.physics_step`); traced
-    observe   ``observe(state, params, config) -> dict`` of one record; traced
+    observe   ``observe(state, params, config, frame) -> dict`` of one record (one
+              member's state and frame); traced
     derive    ``derive(raw, frame, plan) -> dict``: the history from the records
               (records on axis 0, any member axis after it); traced (jnp)
     """
@@ -168,14 +169,21 @@ def _params_for(params, plan: Plan, n_members: int):
     return params
 
 
+def _no_record(state, params, config):
+    return {}
+
+
 def _block(plan: Plan, params, frame):
     test = plan.test
 
+    observe = jax.vmap(test.observe, in_axes=(0, 0, None, 0)) if plan.batched \
+        else test.observe
+
     def block(s, k):
         s = test.load(s, k, frame, plan)
-        s, rec = rollout(s, params, plan.config, 1, plan.record_every, test.observe,
-                         batched=plan.batched, checkpoint=False, boundary=(test.boundary, frame))
-        return s, jax.tree_util.tree_map(lambda a: a[0], rec)
+        s, _ = rollout(s, params, plan.config, 1, plan.record_every, _no_record,
+                       batched=plan.batched, checkpoint=False, boundary=(test.boundary, frame))
+        return s, observe(s, params, plan.config, frame)
 
     return block
 

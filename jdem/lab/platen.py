@@ -1,5 +1,6 @@
 """Platen tests: uniaxial compression, biaxial / triaxial compression with
 servo-controlled confinement, and the Brazilian splitting test (002 §2).
+Citations ("000 eq 4-69") refer to the documents listed in REFERENCES.md.
 
 Geometry.  The loading axis is the last axis (y in 2D, z in 3D).  Rigid planar
 walls (:func:`jdem.state.make_walls`, material ``PLATEN`` = 1) touch the
@@ -63,6 +64,8 @@ class PlatenFrame(NamedTuple):
     diameter    Brazilian disc diameter D [m] (0 otherwise)
     velocity    (W, d) wall velocities at full loading speed [m/s]
     background  background damping coefficient [1/s] (:mod:`jdem.lab.damping`)
+    gauge       (N, d-1) weights of the lateral gauge particles (:func:`lateral_gauges`)
+    gauge_w0    (d-1,) initial gauge widths [m]
     """
 
     h0: jnp.ndarray
@@ -71,6 +74,8 @@ class PlatenFrame(NamedTuple):
     diameter: jnp.ndarray
     velocity: jnp.ndarray
     background: jnp.ndarray
+    gauge: jnp.ndarray
+    gauge_w0: jnp.ndarray
 
 
 # ----------------------------------------------------------------------------- measurement
@@ -99,10 +104,51 @@ def slice_widths(particles, dim):
     return jnp.stack(out)
 
 
-def observe(state, params, config):
+def lateral_gauges(particles, dim):
+    """The lateral strain gauges of a free-sided specimen (host, NumPy): on each
+    side, the particles of the middle half of the height whose outer edge lies
+    within one largest radius of that side's outermost edge, fixed at set-up
+    (a gauge glued at mid-height, away from the platens' end effects).  The
+    gauge width along lateral axis a is mean(x_a + r) over the far side's set
+    minus mean(x_a - r) over the near side's: a mean over fixed particles, so it
+    is smooth in time and in the parameters, and it follows the specimen's
+    surface past the peak instead of jumping with its outermost fragment.
+
+    Returns ``(gauge, w0)``: (N, d-1) weights (1/n on the far side, -1/n on the
+    near side, 0 elsewhere) and (d-1,) initial gauge widths [m]."""
+    pos = np.asarray(particles.pos, np.float64)
+    r = np.asarray(particles.radius, np.float64)
+    valid = np.asarray(particles.valid, bool)
+    ax = dim - 1
+    zlo, zhi = extent(particles, ax)
+    z = pos[:, ax]
+    mid = valid & (z >= zlo + 0.25 * (zhi - zlo)) & (z <= zlo + 0.75 * (zhi - zlo))
+    if not np.any(mid):
+        mid = valid
+    r_max = float(np.max(r[valid]))
+    gauge = np.zeros((pos.shape[0], dim - 1))
+    w0 = np.zeros(dim - 1)
+    for a in range(dim - 1):
+        far = mid & (pos[:, a] + r >= np.max((pos[:, a] + r)[mid]) - r_max)
+        near = mid & (pos[:, a] - r <= np.min((pos[:, a] - r)[mid]) + r_max)
+        gauge[far, a] = 1.0 / np.sum(far)
+        gauge[near, a] = -1.0 / np.sum(near)
+        w0[a] = np.mean((pos[:, a] + r)[far]) - np.mean((pos[:, a] - r)[near])
+    return gauge, w0
+
+
+def gauge_widths(particles, gauge):
+    """(d-1,) gauge widths [m] at the particles' current positions (traced)."""
+    d1 = gauge.shape[-1]
+    return (jnp.sum(gauge * particles.pos[:, :d1], axis=0)
+            + jnp.sum(jnp.abs(gauge) * particles.radius[:, None], axis=0))
+
+
+def observe(state, params, config, frame):
     """One record of a platen test: ``step``; per wall (W,): ``wall_pos``
     (coordinate along its normal axis), ``wall_force`` (compressive normal force
-    [N]) and ``wall_area``; ``width`` (:func:`slice_widths`); ``stress_sum``, the
+    [N]) and ``wall_area``; ``width`` (:func:`slice_widths`), ``gauge_width``
+    (:func:`gauge_widths`); ``stress_sum``, the
     averaged-stress sum of :func:`jdem.measure.averaged_stress` with volume 1;
     bond counts; bond, contact and kinetic energies."""
     w = state.walls
@@ -114,6 +160,7 @@ def observe(state, params, config):
         wall_force=-jnp.sum(w.force * w.normal, axis=-1),
         wall_area=w.area,
         width=slice_widths(state.particles, config.dim),
+        gauge_width=gauge_widths(state.particles, frame.gauge),
         stress_sum=measure.averaged_stress(state, params, config, 1.0),
         fracture_degree=stats["fracture_degree"],
         n_broken=stats["n_broken"], n_tension=stats["n_tension"], n_shear=stats["n_shear"],
@@ -135,8 +182,10 @@ def derive(raw: dict, frame: PlatenFrame, plan: Plan, volume_of=None) -> dict:
     bottom_stress      the same on the bottom platen (equal at equilibrium)
     width              (..., d-1) lateral extent [m]: the lateral walls' distance
                        with confinement, else :func:`slice_widths`
-    lateral_strain     (w0 - w) / w0, compression positive (negative when the
-                       specimen bulges); mean over lateral axes
+    lateral_strain     compression positive (negative when the specimen bulges),
+                       mean over lateral axes: with confinement (w0 - w) / w0 of
+                       the lateral walls, else of the mid-height gauges
+                       (:func:`lateral_gauges`)
     volumetric_strain  axial_strain + sum of lateral strains (small strains)
     lateral_stress     with confinement: mean compressive stress on the lateral walls
     volume             H x area x (w / w0) per lateral axis [m^3]
@@ -176,7 +225,11 @@ def derive(raw: dict, frame: PlatenFrame, plan: Plan, volume_of=None) -> dict:
         width = raw["width"]
     w0 = jax.lax.stop_gradient(w0)
     h["width"] = width
-    lat_strain = (w0[None] - width) / w0[None]
+    if n_lat:
+        lat_strain = (w0[None] - width) / w0[None]
+    else:
+        g0 = jax.lax.stop_gradient(frame.gauge_w0)[None]
+        lat_strain = (g0 - raw["gauge_width"]) / g0
     h["lateral_strain"] = jnp.mean(lat_strain, axis=-1)
     h["volumetric_strain"] = h["axial_strain"] + jnp.sum(lat_strain, axis=-1)
     volume = (volume_of or box_volume)(height, width, frame)
@@ -415,6 +468,7 @@ def platen_setup(test: LabTest, specimens, params, *, max_strain=3e-3, loading_r
     n_records = n_records_for(load_steps, record_every, ramp_records, pre_records)
 
     frames = []
+    n_cap = max(int(b[2].particles.pos.shape[0]) for b in built)   # stack_states pads to it
     for k, (particles, info, state, config, h_box, widths, n_lat) in enumerate(built):
         vel = np.zeros(np.shape(state.walls.vel))
         vel[1, ax] = 0.0 if top_stress is not None else -float(per_member[k]) / dt
@@ -423,12 +477,15 @@ def platen_setup(test: LabTest, specimens, params, *, max_strain=3e-3, loading_r
         if disc:
             diam = float(diameter) if diameter is not None else float(
                 2.0 * info["radius"]) if "radius" in info else h_box
+        gauge, gauge_w0 = lateral_gauges(particles, dim)
+        gauge = np.pad(gauge, ((0, n_cap - gauge.shape[0]), (0, 0)))
         frames.append(PlatenFrame(
             h0=np.asarray(h_box), w0=np.asarray(w0, np.float64),
             area=np.asarray(1.0 if disc else float(np.prod(widths))),
             diameter=np.asarray(diam), velocity=vel,
             background=np.asarray(damping_mod.background_coefficient(
-                damping, youngs, rhos[k], h_box))))
+                damping, youngs, rhos[k], h_box)),
+            gauge=gauge, gauge_w0=gauge_w0))
     dtype = jnp.asarray(params.dt).dtype
     n_lat = built[0][6]
     if len(members) > 1:

@@ -61,8 +61,9 @@ def _mean(x, mask):
     return jnp.sum(jnp.where(mask, x, 0.0)) / jnp.maximum(jnp.sum(mask), 1)
 
 
-def observe(state, params, config):
-    """One record: grip positions, the reaction on the top grip, counts, energies."""
+def observe(state, params, config, frame=None):
+    """One record: grip positions, the reaction on the top grip, counts, energies
+    (``frame`` unused)."""
     top, bottom = _grips(state.particles)
     _, force, _ = integrate.forces(state, params, config)
     ax = config.dim - 1
