@@ -78,10 +78,26 @@ def _jdem_version() -> str:
 
 # ----------------------------------------------------------------------------- writing
 
-def _write_array(group: h5py.Group, name: str, value) -> None:
+def write_dataset(group: h5py.Group, name: str, value) -> None:
+    """One dataset; numeric arrays carry a Fletcher-32 checksum (h5py's
+    ``fletcher32`` filter, checked on every read) and are gzip-compressed
+    above ``COMPRESS_ABOVE_BYTES``.  Scalars cannot carry filters in HDF5."""
     a = np.asarray(value)
+    filtered = a.ndim > 0 and a.size > 0 and a.dtype.kind in "biufc"
     big = a.nbytes > COMPRESS_ABOVE_BYTES
-    group.create_dataset(name, data=a, compression="gzip" if big else None)
+    group.create_dataset(name, data=a, compression="gzip" if big and filtered else None,
+                         fletcher32=filtered)
+
+
+def read_dataset(ds: h5py.Dataset) -> np.ndarray:
+    """A dataset as NumPy; a checksum mismatch (a damaged file) raises
+    :class:`CorruptFileError` naming the dataset and the file."""
+    try:
+        return np.asarray(ds[()])
+    except OSError as err:
+        raise CorruptFileError(f"dataset {ds.name!r} of {ds.file.filename} is damaged (its "
+                               f"checksum or compressed data does not read back): {err}") from None
+
 
 
 def _write_tree(group: h5py.Group, tree) -> None:
@@ -93,7 +109,7 @@ def _write_tree(group: h5py.Group, tree) -> None:
         if isinstance(value, tuple) and hasattr(value, "_fields"):
             _write_tree(group.create_group(name), value)
         else:
-            _write_array(group, name, value)
+            write_dataset(group, name, value)
 
 
 def _write_attrs(attrs: h5py.AttributeManager, mapping: dict, what: str) -> None:
@@ -153,7 +169,7 @@ def save_run(path, *, state=None, params=None, config=None, history=None, attrs=
             if history is not None:
                 g = f.create_group("history", track_order=True)
                 for name, value in history.items():
-                    _write_array(g, name, value)
+                    write_dataset(g, name, value)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
@@ -183,7 +199,7 @@ def _read_attrs(attrs: h5py.AttributeManager, skip=("_class",)) -> dict:
 
 
 def _read_array(ds: h5py.Dataset):
-    return jnp.asarray(np.asarray(ds[()]))
+    return jnp.asarray(read_dataset(ds))
 
 
 def _class_of(group: h5py.Group, default: str, where: str, path) -> type:

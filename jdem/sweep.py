@@ -70,6 +70,7 @@ import numpy as np
 
 from jdem import lab
 from jdem.batch import broadcast_batch
+from jdem import io
 from jdem.io import open_hdf5
 from jdem.materials import PARAMETERS, material
 from jdem.specimen import as_arrays
@@ -504,7 +505,7 @@ def save_sweep(path, table: SweepTable) -> pathlib.Path:
         f.attrs["_json_attrs"] = json.dumps(json_keys)
         g = f.create_group("table", track_order=True)
         for key, value in table.items():
-            g.create_dataset(key, data=np.asarray(value))
+            io.write_dataset(g, key, value)
     return path
 
 
@@ -523,7 +524,7 @@ def load_sweep(path) -> SweepTable:
                 continue
             value = value.item() if isinstance(value, np.generic) else value
             attrs[key] = json.loads(value) if key in json_keys else value
-        columns = {key: np.asarray(ds[()]) for key, ds in f["table"].items()}
+        columns = {key: io.read_dataset(ds) for key, ds in f["table"].items()}
     return SweepTable(columns, attrs)
 
 
