@@ -277,11 +277,15 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
         bend_mag = jnp.abs(bend_tr)
     twist_tr = bonds.twist - ks * geo.J * dth_n / area_d
     # 002 ineq 11 (with this step's corrected forces and trial moments): the bond
-    # stops transmitting moments for good.
+    # stops transmitting moments for good.  A bond that yields at its full
+    # strength meets a branch with equality (the corrected F_n is -T0 A_c, the
+    # corrected |F_s| is F_n tan(phi) + c0 A_c), so those cases are decided by the
+    # yield flags, not by the round-off of the corrected forces.
     sig_n = fn_b / area_d
     ineq11 = ((-sig_n + bend_mag / _den(geo.I) * geo.r_min >= t0)
               | (safe_norm(fs_b) / area_d + jnp.abs(twist_tr) / _den(geo.J) * geo.r_min
-                 >= sig_n * tanphi + c0))
+                 >= sig_n * tanphi + c0)
+              | (tens & (t_old >= t0)) | (shear & (c_old >= c0)))
     moment_lost = valid & (bonds.moment_lost | (~was_broken & ineq11))
     carry_m = valid & ~was_broken & ~moment_lost
     twist = jnp.where(carry_m, twist_tr, 0.0)
