@@ -15,7 +15,15 @@
    respect to k = 3 parameters (E, strength, kappa, in log space) by forward
    mode (``jax.jacfwd``: one pass with k tangents, what
    :func:`jdem.calibrate.calibrate` uses for Levenberg-Marquardt).
-2. A sweep of ``--batch`` parameter sets of the same test as one vmapped call
+2. ``--ensemble K`` (K >= 1; skips 1 and 3): the issue's calibration at realistic
+   size: K packings of ~1,000 discs as one ensemble in the UCS test at the
+   default (certified quasi-static) loading rate.  A full 3-parameter fit is
+   out of reach on a 2-core CPU, so the cost of one run is measured on the
+   first ``--probe-steps`` steps (forward, and the forward-mode Jacobian with
+   k = 3 tangents, compile excluded), scaled to the full run's steps, and the
+   fit's wall time estimated as (iterations + 1) Jacobians + 3 certificate runs
+   (``--iterations``, default 13: the 3-parameter test's count).
+3. A sweep of ``--batch`` parameter sets of the same test as one vmapped call
    (an ensemble of copies of the specimen with one parameter set each),
    ``--sweep-steps`` steps: specimens x steps per second.
 
@@ -74,9 +82,17 @@ def main(argv=None):
     ap.add_argument("--sweep-steps", type=int, default=2000)
     ap.add_argument("--out", default=str(HERE / "results" / "calibration_benchmark"))
     ap.add_argument("--skip-gradient", action="store_true", help="only the sweep figure")
+    ap.add_argument("--ensemble", type=int, default=0,
+                    help="K: estimate a 3-parameter fit on K packings of ~1,000 discs")
+    ap.add_argument("--probe-steps", type=int, default=4000)
+    ap.add_argument("--iterations", type=int, default=13)
+    ap.add_argument("--max-strain", type=float, default=1.2e-3,
+                    help="--ensemble: the fit's loading range (the tests' 1.2e-3)")
     a = ap.parse_args(argv)
     out = pathlib.Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
+    if a.ensemble:
+        return ensemble_estimate(a, out)
 
     spec = generate("rectangle", (0.0125, 0.025), 0.2e-3, 0.35e-3, seed=0, target_coordination=4.5)
     n = int(np.sum(np.asarray(spec.particles.valid)))
@@ -167,6 +183,75 @@ def main(argv=None):
           f"| process peak resident memory | {rss1:.2f} GiB |",
           f"| sweep, batch {a.batch} x {s_steps} steps | {t_sweep:.1f} s = {rate:.0f} specimens x steps / s |"]
     (out / "calibration_benchmark.md").write_text("\n".join(md) + "\n")
+    print(f"-> {out}")
+
+
+def _machine():
+    return dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="minutes"),
+                machine=f"{platform.machine()} {os.cpu_count()} cores, {platform.platform()}",
+                devices=[str(d) for d in jax.devices()], jax=jax.__version__, dtype="float64")
+
+
+def ensemble_estimate(a, out):
+    """The realistic-size calibration's cost (see the module docstring, 2)."""
+    specs = [generate("rectangle", (0.0125, 0.025), 0.2e-3, 0.35e-3, seed=s,
+                      target_coordination=4.5) for s in range(a.ensemble)]
+    n = [int(np.sum(np.asarray(sp.particles.valid))) for sp in specs]
+    kw = dict(stiffness_margin=2.0)
+    full = lab.UCS.setup(specs, rock_params(2), max_strain=a.max_strain, **kw)
+    full_steps = full.plan.n_records * full.plan.record_every
+    # the probe: the same set-up (time step, rate, ramp) on its first records
+    probe_records = max(2, int(round(a.probe_steps / full.plan.record_every)))
+    plan = full.plan.replace(n_records=probe_records)
+    setup = full.replace(plan=plan)
+    steps = probe_records * plan.record_every
+    params = setup.params
+    print(f"{a.ensemble} packings of {n} discs; full run {full_steps} steps "
+          f"({full.plan.n_records} records, rate {full.plan.option('loading_rate'):.2g}), "
+          f"probe {steps} steps", flush=True)
+    names = ("E", "strength", "kappa")
+
+    def curve_of(x):
+        vals = dict(zip(names, jnp.exp(x)))
+        return lab.curve(setup, material(params, vals)).history["axial_stress"]
+
+    x0 = jnp.log(jnp.asarray([36e9, 2.5e6, 4e-3]))
+    fwd = jax.jit(curve_of)
+    jax.block_until_ready(fwd(x0))
+    t_fwd = _best(fwd, x0)
+    print(f"forward: {t_fwd:.2f} s", flush=True)
+    jac = jax.jit(jax.jacfwd(curve_of))
+    t0 = time.perf_counter()
+    jax.block_until_ready(jac(x0))
+    t_jac_first = time.perf_counter() - t0
+    t_jac = _best(jac, x0, repeat=1)
+    scale = full_steps / steps
+    per_iter = t_jac * scale
+    fit = (a.iterations + 1) * per_iter + 3 * t_fwd * scale
+    print(f"Jacobian k = 3: {t_jac:.2f} s = {t_jac / t_fwd:.2f} x forward (first call with "
+          f"compile {t_jac_first:.1f} s); full run: forward {t_fwd * scale:.0f} s, Jacobian "
+          f"{per_iter:.0f} s; fit of {a.iterations} iterations ~ {fit / 3600:.2f} h", flush=True)
+    res = dict(_machine(), command="python experiments/calibration_benchmark.py "
+               + " ".join(sys.argv[1:]), ensemble=a.ensemble, n_particles=n,
+               full_steps=full_steps, probe_steps=steps, forward_probe_s=t_fwd,
+               jacobian_k3_probe_s=t_jac, jacobian_over_forward=t_jac / t_fwd,
+               forward_full_s=t_fwd * scale, jacobian_full_s=per_iter,
+               iterations=a.iterations, fit_estimate_s=fit)
+    (out / "ensemble_estimate.json").write_text(json.dumps(res, indent=1))
+    md = ["# A 3-parameter calibration at realistic size: cost", "",
+          f"{res['date']}, {res['machine']}, JAX {res['jax']}, {res['devices']}, float64", "",
+          f"Command: `{res['command']}`", "",
+          "| figure | value |", "|---|---|",
+          f"| ensemble | {a.ensemble} packings of {n} discs, UCS at the default "
+          f"(certified) rate to strain {a.max_strain:g} |",
+          f"| full run | {full_steps} steps |",
+          f"| probe | first {steps} steps |",
+          f"| forward (probe) | {t_fwd:.2f} s |",
+          f"| forward-mode Jacobian k = 3 (probe) | {t_jac:.2f} s ({t_jac / t_fwd:.2f} x forward) |",
+          f"| one iteration at full length (Jacobian) | {per_iter:.0f} s |",
+          f"| fit: {a.iterations} iterations + final Jacobian + 3 certificate runs | "
+          f"{fit:.0f} s = {fit / 3600:.2f} h (aim: 30 min) |"]
+    (out / "ensemble_estimate.md").write_text("\n".join(md) + "\n")
     print(f"-> {out}")
 
 
