@@ -380,24 +380,6 @@ def _start_value(name, mat):
             "gamma_lim": mat["kappa"], "strength": mat["T0"], "kappa": mat["kappa"]}[name]
 
 
-def _csv_width(path) -> int:
-    """Columns of the first numeric row of a CSV file (0 if unreadable: the
-    target loader then says what is wrong)."""
-    import csv
-
-    try:
-        with open(path, newline="") as f:
-            for row in csv.reader(f):
-                try:
-                    float(row[0]), float(row[1])
-                except (ValueError, IndexError):
-                    continue
-                return len(row)
-    except (OSError, UnicodeDecodeError):
-        return 0
-    return 0
-
-
 def calibrate_cli(curve, config=None, out="results/calibrate", small=False, progress=True):
     """``jdem calibrate CURVE.csv``: fit the ``[fit] parameters`` of a bonded
     specimen in the UCS test to a laboratory curve (strain, stress [Pa], and a
@@ -411,7 +393,7 @@ def calibrate_cli(curve, config=None, out="results/calibrate", small=False, prog
 
     cfg = calibrate_settings(config, small)
     sp, mat, ld, fit = cfg["specimen"], cfg["material"], cfg["loading"], cfg["fit"]
-    target = calibrate.load_target(curve, lateral_column=2 if _csv_width(curve) >= 3 else None)
+    target = calibrate.load_target(curve, lateral_column="auto")
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()

@@ -122,7 +122,9 @@ def load_target(source, *, strain_column=0, stress_column=1, lateral_column=None
     and ``stress`` (e.g. a simulated curve or history; ``axial_strain`` /
     ``axial_stress`` also work; ``lateral_strain`` is taken when present), or a
     CSV file of two columns (strain, stress in Pa; a header line is allowed) or
-    three (``lateral_column=2``: the lateral strain, compression positive).  Malformed input raises ``InputError``, and so
+    three (``lateral_column=2``: the lateral strain, compression positive;
+    ``lateral_column="auto"``: the column after strain and stress when the first
+    row of numbers has one).  Malformed input raises ``InputError``, and so
     does a strain column in percent (strain above :data:`MAX_TARGET_STRAIN`) or
     a stress column in MPa (peak below 1e4 Pa)."""
     if isinstance(source, Target):
@@ -131,7 +133,7 @@ def load_target(source, *, strain_column=0, stress_column=1, lateral_column=None
     if isinstance(source, (str, pathlib.Path)):
         cols = _read_csv(pathlib.Path(source), strain_column, stress_column, lateral_column)
         strain, stress = cols[0], cols[1]
-        lateral = cols[2] if lateral_column is not None else None
+        lateral = cols[2] if len(cols) == 3 else None
     elif isinstance(source, dict):
         key_e = "strain" if "strain" in source else "axial_strain"
         key_s = "stress" if "stress" in source else "axial_stress"
@@ -202,10 +204,18 @@ def _read_csv(path, ce, cs, cl=None):
         for n, row in enumerate(csv.reader(f)):
             if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
                 continue
-            cols = (ce, cs) if cl is None else (ce, cs, cl)
+            if cl == "auto":   # decided by the first row of numbers
+                try:
+                    float(row[ce]), float(row[cs])
+                except (ValueError, IndexError):
+                    pass
+                else:
+                    cl = max(ce, cs) + 1 if len(row) > max(ce, cs) + 1 else None
+            cl_row = None if cl == "auto" else cl
+            cols = (ce, cs) if cl_row is None else (ce, cs, cl_row)
             try:
                 rows.append(tuple(float(row[c]) for c in (ce, cs))
-                            + (() if cl is None else (_reading(row[cl]),)))
+                            + (() if cl_row is None else (_reading(row[cl_row]),)))
             except ValueError:
                 if rows or header:   # only the first line may be a header
                     raise InputError(f"{path}: line {n + 1} is not {len(cols)} numbers: "

@@ -64,7 +64,6 @@ def test_calibrate_reads_a_lateral_strain_column_when_the_csv_has_one(tmp_path):
     two.write_text("strain,stress\n" + "".join(f"{a},{b}\n" for a, b in zip(e, s)))
     three.write_text("strain,stress,lateral\n" + "".join(
         f"{a},{b},{-0.2 * a if i < 50 else ''}\n" for i, (a, b) in enumerate(zip(e, s))))
-    assert cli._csv_width(two) == 2 and cli._csv_width(three) == 3
-    assert cli._csv_width(tmp_path / "missing.csv") == 0
-    t = calibrate.load_target(three, lateral_column=2 if cli._csv_width(three) >= 3 else None)
+    assert calibrate.load_target(two, lateral_column="auto").lateral_strain is None
+    t = calibrate.load_target(three, lateral_column="auto")
     assert np.isfinite(t.lateral_strain[:50]).all() and np.isnan(t.lateral_strain[50:]).all()
