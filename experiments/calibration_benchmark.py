@@ -160,9 +160,7 @@ def main(argv=None):
     print(f"sweep: batch {a.batch} x {s_steps} steps in {t_sweep:.1f} s = {rate:.0f} "
           f"specimens x steps / s ({rate * n / 1e6:.2f} M particle-steps/s; compile {t_compile:.0f} s)")
 
-    res = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="minutes"),
-               machine=f"{platform.machine()} {os.cpu_count()} cores, {platform.platform()}",
-               devices=[str(d) for d in jax.devices()], jax=jax.__version__, dtype="float64",
+    res = dict(_machine(),
                command=" ".join(["python experiments/calibration_benchmark.py"]
                                 + list(sys.argv[1:] if argv is None else argv)),
                n_particles=n, steps=steps, forward_s=t_fwd, forward_backward_s=t_grad,
