@@ -361,7 +361,7 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
             bar.close()
     # uncertainty and curves at the best point
     ub = jnp.asarray([_to_internal(best[1][n], *lims[n]) for n in names])
-    fn = functools.partial(_residual_fn, names=tuple(names), lims=lims, terms=tuple(terms))
+    fn = jax.tree_util.Partial(_residual_fn, names=tuple(names), lims=lims, terms=tuple(terms))
     args = tuple((t.setup, p) for t, p in zip(terms, plist))
     r, J = _jacobian(fn, ub, args, jacobian)
     std, intervals, corr, why = _uncertainty(J, r, np.asarray(ub), names, lims, n_data)
@@ -411,21 +411,36 @@ def _n_data(term):
     return n * term.setup.n_members
 
 
-def _jit_jacobian(fn, mode):
+def _jacobian_impl(fn, u, args, mode):
     if mode == "forward":
-        def jac(u, args):
-            r, lin = jax.linearize(lambda v: fn(v, args)[0], u)
-            return r, jax.vmap(lin, out_axes=1)(jnp.eye(u.shape[0], dtype=u.dtype))
-    else:
-        def jac(u, args):
-            r, vjp = jax.vjp(lambda v: fn(v, args)[0], u)
-            return r, jax.vmap(vjp)(jnp.eye(r.shape[0], dtype=r.dtype))[0]
-    return jax.jit(jac)
+        r, lin = jax.linearize(lambda v: fn(v, args)[0], u)
+        return r, jax.vmap(lin, out_axes=1)(jnp.eye(u.shape[0], dtype=u.dtype))
+    r, vjp = jax.vjp(lambda v: fn(v, args)[0], u)
+    return r, jax.vmap(vjp)(jnp.eye(r.shape[0], dtype=r.dtype))[0]
 
 
 def _jacobian(fn, u, args, mode):
-    r, J = _jit_jacobian(fn, mode)(u, args)
+    r, J = _compiled()["jacobian"](fn, u, args, mode)
     return np.asarray(r), np.asarray(J)
+
+
+@functools.cache
+def _compiled():
+    """The jitted steps, built once per process and kept at module level, so a
+    second ``calibrate`` call on the same set-up (a resumed fit, a notebook cell
+    run again) reuses their compilation: ``fn`` is a ``jax.tree_util.Partial`` (a
+    pytree), its arrays traced and the rest (names, bounds, plan) static."""
+    import equinox as eqx
+
+    return dict(
+        jacobian=eqx.filter_jit(_jacobian_impl),
+        init=eqx.filter_jit(lambda solver, fn, y, a, o, f_struct, aux_struct, tags:
+                            solver.init(fn, y, a, o, f_struct, aux_struct, tags)),
+        step=eqx.filter_jit(lambda solver, fn, y, s, a, o, tags:
+                            solver.step(fn, y, a, o, s, tags)),
+        terminate=eqx.filter_jit(lambda solver, fn, y, s, a, o, tags:
+                                 solver.terminate(fn, y, a, o, s, tags)),
+        value_and_grad=eqx.filter_jit(_value_and_grad_impl))
 
 
 def _least_squares(terms, plist, u, names, lims, record, history, steps, *, method, jacobian,
@@ -441,15 +456,18 @@ def _least_squares(terms, plist, u, names, lims, record, history, steps, *, meth
     stall, last = 0, (min(history["loss"]) if history["loss"] else np.inf)
     k = 0
     while k < steps:
-        fn = functools.partial(_residual_fn, names=tuple(names), lims=lims, terms=tuple(terms))
+        fn = jax.tree_util.Partial(_residual_fn, names=tuple(names), lims=lims, terms=tuple(terms))
         args = tuple((t.setup, p) for t, p in zip(terms, plist))
         f_struct, aux_struct = jax.eval_shape(fn, u, args)
-        state = solver.init(fn, u, args, options, f_struct, aux_struct, tags)
-        step = eqx.filter_jit(lambda y, s, a: solver.step(fn, y, a, options, s, tags))
-        terminate = eqx.filter_jit(lambda y, s, a: solver.terminate(fn, y, a, options, s, tags))
+        compiled = _compiled()
+        # through the cached jit too: the state holds the linearised function as a
+        # jaxpr, which the step's cache compares by identity
+        state = compiled["init"](solver, fn, u, args, options, f_struct, aux_struct, tags)
+        step = functools.partial(compiled["step"], solver, fn)
+        terminate = functools.partial(compiled["terminate"], solver, fn)
         regrow = False
         while k < steps:
-            u, state, _ = step(u, state, args)
+            u, state, _ = step(u, state, args, options, tags)
             aux = state.aux
             if bool(np.any(np.asarray(aux["overflowed"]))):
                 terms = [t._replace(setup=lab.grow(t.setup)) if bool(o) else t
@@ -468,7 +486,7 @@ def _least_squares(terms, plist, u, names, lims, record, history, steps, *, meth
             k += 1
             stall = 0 if loss < last * (1.0 - min_improvement) else stall + 1
             last = min(last, loss)
-            done, _result = terminate(u, state, args)
+            done, _result = terminate(u, state, args, options, tags)
             if bool(done) or loss < tol:
                 return True, terms
             if stall >= patience:
@@ -491,11 +509,11 @@ def _adam(terms, plist, u, names, lims, record, history, steps, *, jacobian, lea
     vg_fn = None
     while k < steps:
         if vg_fn is None:   # built again after the neighbour list grew
-            fn = functools.partial(_residual_fn, names=tuple(names), lims=lims,
+            fn = jax.tree_util.Partial(_residual_fn, names=tuple(names), lims=lims,
                                    terms=tuple(terms))
-            vg_fn = _value_and_grad(fn, jacobian)
+            vg_fn = functools.partial(_compiled()["value_and_grad"], fn)
         args = tuple((t.setup, p) for t, p in zip(terms, plist))
-        loss, aux, g = vg_fn(u, args)
+        loss, aux, g = vg_fn(u, args, jacobian)
         if bool(np.any(np.asarray(aux["overflowed"]))):
             terms = [t._replace(setup=lab.grow(t.setup)) if bool(o) else t
                      for t, o in zip(terms, np.asarray(aux["overflowed"]))]
@@ -518,24 +536,21 @@ def _adam(terms, plist, u, names, lims, record, history, steps, *, jacobian, lea
 
 
 
-def _value_and_grad(fn, mode):
+def _value_and_grad_impl(fn, u, args, mode):
     if mode == "forward":
-        def vg(u, args):
-            def with_residuals(v):
-                r, aux = fn(v, args)
-                return r, (r, aux)
+        def with_residuals(v):
+            r, aux = fn(v, args)
+            return r, (r, aux)
 
-            J, (r, aux) = jax.jacfwd(with_residuals, has_aux=True)(u)
-            return jnp.sum(r ** 2), aux, 2.0 * J.T @ r
-    else:
-        def vg(u, args):
-            def loss(v):
-                r, aux = fn(v, args)
-                return jnp.sum(r ** 2), aux
+        J, (r, aux) = jax.jacfwd(with_residuals, has_aux=True)(u)
+        return jnp.sum(r ** 2), aux, 2.0 * J.T @ r
 
-            (value, aux), g = jax.value_and_grad(loss, has_aux=True)(u)
-            return value, aux, g
-    return jax.jit(vg)
+    def loss(v):
+        r, aux = fn(v, args)
+        return jnp.sum(r ** 2), aux
+
+    (value, aux), g = jax.value_and_grad(loss, has_aux=True)(u)
+    return value, aux, g
 
 
 # ----------------------------------------------------------------------------- curves, files
