@@ -112,7 +112,7 @@ def _dashpot_sums(state: State, params: Params, config: Config):
     return c_tr, c_rot
 
 
-def _damped_limit(w2, g):
+def damped_limit(w2, g):
     """2 / (sqrt(w2 + g^2 / 4) + g / 2): the stable step of a mass-spring-dashpot
     with omega^2 = w2 and c / m = g; infinite where w2 = 0 (no spring)."""
     spring = w2 > 0
@@ -132,8 +132,8 @@ def critical_timestep(state: State, params: Params, config: Config):
     k_tr, k_rot = _stiffness_sums(state, params, config)
     c_tr, c_rot = _dashpot_sums(state, params, config)
     visc = params.viscous_damping
-    dt_tr = _damped_limit(2.0 * k_tr / p.mass, 2.0 * c_tr / p.mass + visc)
-    dt_rot = _damped_limit(2.0 * k_rot / p.inertia, 2.0 * c_rot / p.inertia + visc)
+    dt_tr = damped_limit(2.0 * k_tr / p.mass, 2.0 * c_tr / p.mass + visc)
+    dt_rot = damped_limit(2.0 * k_rot / p.inertia, 2.0 * c_rot / p.inertia + visc)
     dt = jnp.where(p.valid & ~jnp.all(p.fixed_vel, axis=-1), jnp.minimum(dt_tr, dt_rot), jnp.inf)
     return jnp.min(dt, initial=jnp.inf)
 
@@ -151,8 +151,8 @@ def nominal_critical_timestep(particles, params: Params, config: Config, *, coor
                                    config.contact_model)
     visc = params.viscous_damping
     c = 2.0 * params.contact_damping * jnp.sqrt(0.5 * p.mass * kn)  # like pairs: m* = m / 2
-    dt_tr = _damped_limit(2.0 * z * (kn + kt) / p.mass, 2.0 * z * c / p.mass + visc)
-    dt_rot = _damped_limit(2.0 * z * kt * 2 * p.radius**2 / p.inertia, visc)
+    dt_tr = damped_limit(2.0 * z * (kn + kt) / p.mass, 2.0 * z * c / p.mass + visc)
+    dt_rot = damped_limit(2.0 * z * kt * 2 * p.radius**2 / p.inertia, visc)
     return jnp.min(jnp.where(p.valid, jnp.minimum(dt_tr, dt_rot), jnp.inf))
 
 

@@ -1,0 +1,343 @@
+"""The computing cycle of the block method (000 §2.3.2, eq 2-9..2-17).
+
+Citations ("000 eq 2-15") refer to the documents listed in REFERENCES.md.
+
+One step:
+
+1. refresh the pair list if some centroid moved half the skin (:mod:`jdem.blocks.detect`);
+2. contact geometry of every listed pair, relative velocity at each contact
+   point (000 eq 2-9, 2-10), the joint law (:func:`jdem.blocks.joint.coulomb_point`,
+   000 eq 2-11) plus contact dashpots (000 eq 2-12 in rate form: a fraction
+   ``contact_damping`` of the critical c = 2 sqrt(m* k), the shear one off while
+   the point slips, as the book says), forces and moments summed on the blocks
+   (000 eq 2-13, 2-14) with gravity and applied loads;
+3. damping of the unbalanced force and moment (000 §3.2, the particles' laws of
+   :mod:`jdem.damping`);
+4. velocities v += F / m dt, spin w += M / I dt (000 eq 2-15), except for
+   ``fixed`` blocks, whose motion is prescribed;
+5. positions and angles (000 eq 2-16, 2-17).
+
+Same discipline as the particles: ``BlockState`` evolves, ``BlockParams`` are
+the traced floats (differentiable: stiffnesses, friction, strengths, damping),
+``jdem.state.Config`` is static (the search grid).  Per listed pair the list
+keeps four history numbers in ``contacts.shear`` (C, 4): the shear forces of
+its two contact points [N] and whether each is intact (1.0 / 0.0); they carry
+over rebuilds with the pair, like the disc contacts' shear springs.
+"""
+from __future__ import annotations
+
+import functools
+import time
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jdem import damping, neighbors
+from jdem.blocks import detect, joint
+from jdem.blocks.geometry import Blocks
+from jdem.kinematics import segment_add
+from jdem.state import Config, Contacts
+from jdem.timestep import damped_limit
+from jdem.validate import InputError
+
+HISTORY = 2 * detect.POINTS_PER_PAIR     # shear force and intact flag per point
+
+
+class BlockParams(NamedTuple):
+    """Traced parameters of a block system (scalars unless noted).
+
+    dt               time step [s]
+    kn, ks           normal and shear stiffness per contact point [N/m] (000 eq 2-1, 2-2)
+    friction         mu = tan(phi) of the joints [-]
+    cohesion         shear strength of an intact point at zero normal force [N]
+    tension          tensile strength of an intact point [N]
+    contact_damping  ratio of critical damping of the normal and shear dashpots [-]
+    local_damping    alpha of 000 eq 3-19 [-], 0 <= alpha < 1
+    viscous_damping  mass-proportional damping c [1/s] (000 eq 3-9)
+    gravity          (2,) [m/s^2]
+    """
+
+    dt: jnp.ndarray
+    kn: jnp.ndarray
+    ks: jnp.ndarray
+    friction: jnp.ndarray
+    cohesion: jnp.ndarray
+    tension: jnp.ndarray
+    contact_damping: jnp.ndarray
+    local_damping: jnp.ndarray
+    viscous_damping: jnp.ndarray
+    gravity: jnp.ndarray
+
+
+def make_params(*, kn, ks=None, friction=0.5, cohesion=0.0, tension=0.0, contact_damping=0.0,
+                local_damping=0.0, viscous_damping=0.0, gravity=(0.0, -9.81), dt=None,
+                dtype=None) -> BlockParams:
+    """Block parameters with checks; ``ks`` defaults to kn / (2 (1 + 0.25))
+    (000 eq 3-33 with nu = 0.25); ``dt`` to NaN (set it with
+    :func:`recommended_timestep` before running)."""
+    ks = kn / 2.5 if ks is None else ks
+    vals = dict(kn=kn, ks=ks, friction=friction, cohesion=cohesion, tension=tension,
+                contact_damping=contact_damping, local_damping=local_damping,
+                viscous_damping=viscous_damping)
+    for name, v in vals.items():
+        v = float(v)
+        if not np.isfinite(v) or v < 0:
+            raise InputError(f"block parameter {name} must be finite and >= 0, got {v!r}")
+    if float(kn) <= 0:
+        raise InputError(f"block parameter kn must be > 0, got {kn!r}")
+    if not float(local_damping) < 1.0:
+        raise InputError(f"block parameter local_damping must be < 1, got {local_damping!r}")
+    g = np.asarray(gravity, dtype=np.float64)
+    if g.shape != (2,) or not np.all(np.isfinite(g)):
+        raise InputError(f"gravity must be a finite (2,) vector, got {gravity!r}")
+    f = jnp.zeros(()).dtype if dtype is None else dtype
+    a = lambda x: jnp.asarray(x, f)   # noqa: E731
+    return BlockParams(dt=a(np.nan if dt is None else dt), gravity=a(g),
+                       **{k: a(v) for k, v in vals.items()})
+
+
+class BlockState(NamedTuple):
+    """blocks: :class:`jdem.blocks.geometry.Blocks`; contacts: the pair list
+    (history (C, 4) in ``contacts.shear``, see the module docstring); step: int32."""
+
+    blocks: Blocks
+    contacts: Contacts
+    step: jnp.ndarray
+
+
+def make_state(blocks: Blocks, *, skin=None, capacity=None):
+    """State and static config of a block system (host): the search grid covers
+    the blocks with a margin and the pair list is allocated and built.
+
+    skin  listing distance between bounding circles [m] (default a tenth of the
+          smallest bounding radius)
+    Returns ``(state, config)``.
+    """
+    circles = detect.bounding_circles(blocks)
+    rad = np.asarray(blocks.radius)[np.asarray(blocks.valid)]
+    skin = 0.1 * float(rad.min()) if skin is None else float(skin)
+    origin, shape, cell = neighbors.grid_for(circles, skin=skin)
+    config = Config(dim=2, skin=skin, cell_size=cell, grid_origin=origin, grid_shape=shape,
+                    max_per_cell=8)
+    start = neighbors.empty(circles, 1)._replace(
+        shear=jnp.zeros((1, HISTORY), blocks.pos.dtype))
+    probe = neighbors.build(start, circles, config)
+    cap = max(int(capacity or 0), neighbors.room_for(int(probe.n_pairs)), 4 * int(rad.size))
+    empty = neighbors.empty(circles, cap)
+    empty = empty._replace(shear=jnp.zeros((cap, HISTORY), blocks.pos.dtype))
+    contacts, config = neighbors.allocate(circles, config, old=empty, min_capacity=cap)
+    return BlockState(blocks=blocks, contacts=contacts, step=jnp.zeros((), jnp.int32)), config
+
+
+def _cross(r, f):
+    """z component of r x f for (..., 2) vectors."""
+    return r[..., 0] * f[..., 1] - r[..., 1] * f[..., 0]
+
+
+def _spin(w, r):
+    """w x r for a scalar spin w (...) and (..., 2) arms."""
+    return jnp.stack([-w * r[..., 1], w * r[..., 0]], axis=-1)
+
+
+class ContactForces(NamedTuple):
+    """Per listed pair and point: ``normal`` (C, 2), ``point`` (C, 2, 2) [m],
+    ``fn``, ``fs`` (C, 2) [N] on block j (on i: minus), ``active``, ``sliding``,
+    ``intact`` (C, 2) bool, ``overlap`` (C, 2) [m]."""
+
+    normal: jnp.ndarray
+    point: jnp.ndarray
+    fn: jnp.ndarray
+    fs: jnp.ndarray
+    active: jnp.ndarray
+    sliding: jnp.ndarray
+    intact: jnp.ndarray
+    overlap: jnp.ndarray
+
+
+def contact_forces(state: BlockState, params: BlockParams):
+    """Joint forces of the listed pairs and their sums on the blocks.
+
+    Returns ``(contacts, force (B, 2) [N], moment (B,) [N m], ContactForces)``,
+    ``contacts`` with the updated history.  Gravity and loads are not included.
+    """
+    b, c = state.blocks, state.contacts
+    g = detect.pair_geometry(b, c.i, c.j)
+    shear_old = c.shear[:, :2]
+    intact_old = c.shear[:, 2:] > 0.5
+    active = c.valid[:, None] & g.exists & ((g.separation < 0) | intact_old)
+    n = g.normal[:, None, :]                               # (C, 1, 2)
+    t = jnp.stack([-n[..., 1], n[..., 0]], axis=-1)
+    ri = g.point - b.pos[c.i][:, None, :]
+    rj = g.point - b.pos[c.j][:, None, :]
+    vi = b.vel[c.i][:, None, :] + _spin(b.angvel[c.i][:, None], ri)
+    vj = b.vel[c.j][:, None, :] + _spin(b.angvel[c.j][:, None], rj)
+    v_rel = vj - vi                                        # 000 eq 2-9 as rates
+    vn = jnp.sum(v_rel * n, axis=-1)                       # 000 eq 2-10
+    vt = jnp.sum(v_rel * t, axis=-1)
+    overlap = -g.separation
+    fn, fs, intact, sliding = joint.coulomb_point(
+        overlap, vt * params.dt, shear_old, intact_old & active, params.kn, params.ks,
+        params.friction, params.cohesion, params.tension)
+    # dashpots (000 eq 2-12 as a fraction of critical); reduced mass, a fixed
+    # block counting as infinitely heavy
+    mi = jnp.where(b.fixed[c.i], jnp.inf, b.mass[c.i])
+    mj = jnp.where(b.fixed[c.j], jnp.inf, b.mass[c.j])
+    m_red = jnp.where(jnp.isinf(mi), mj, jnp.where(jnp.isinf(mj), mi, mi * mj / (mi + mj)))
+    m_red = jnp.where(jnp.isinf(m_red), 0.0, m_red)[:, None]
+    zeta = params.contact_damping
+    dn = -2.0 * zeta * jnp.sqrt(m_red * params.kn) * vn
+    ds = jnp.where(sliding, 0.0, -2.0 * zeta * jnp.sqrt(m_red * params.ks) * vt)
+    fn_total = jnp.where(intact, fn + dn, jnp.maximum(fn + dn, 0.0))
+    fn_total = jnp.where(active, fn_total, 0.0)
+    fs_total = jnp.where(active, fs + ds, 0.0)
+    fs = jnp.where(active, fs, 0.0)
+    intact = intact & active
+    force_j = fn_total[..., None] * n + fs_total[..., None] * t     # (C, 2, 2)
+    nb = b.pos.shape[0]
+    force = segment_add(jnp.sum(force_j, axis=1), c.j, nb) - \
+        segment_add(jnp.sum(force_j, axis=1), c.i, nb)
+    moment = segment_add(jnp.sum(_cross(rj, force_j), axis=1), c.j, nb) - \
+        segment_add(jnp.sum(_cross(ri, force_j), axis=1), c.i, nb)
+    history = jnp.concatenate([fs, intact.astype(fs.dtype)], axis=1)
+    contacts = c._replace(shear=jnp.where(c.valid[:, None], history, 0.0))
+    info = ContactForces(normal=g.normal, point=g.point, fn=fn_total, fs=fs_total,
+                         active=active, sliding=sliding & active, intact=intact,
+                         overlap=overlap)
+    return contacts, force, moment, info
+
+
+def step(state: BlockState, params: BlockParams, config: Config) -> BlockState:
+    """One step of the cycle (module docstring)."""
+    b = state.blocks
+    contacts = neighbors.update(state.contacts, detect.bounding_circles(b), config)
+    state = state._replace(contacts=contacts)
+    contacts, force, moment, _ = contact_forces(state, params)
+    force = force + b.mass[:, None] * params.gravity + b.ext_force
+    moment = moment + b.ext_torque
+    force = damping.viscous_damping(force, b.vel, b.mass, params.viscous_damping)
+    moment = damping.viscous_damping(moment, b.angvel, b.inertia, params.viscous_damping)
+    force = damping.local_damping(force, b.vel, params.local_damping)
+    moment = damping.local_damping(moment, b.angvel, params.local_damping)
+    free = b.valid & ~b.fixed
+    vel = jnp.where(free[:, None], b.vel + force / b.mass[:, None] * params.dt, b.vel)
+    angvel = jnp.where(free, b.angvel + moment / b.inertia * params.dt, b.angvel)
+    blocks = b._replace(vel=vel, angvel=angvel, pos=b.pos + vel * params.dt,
+                        angle=b.angle + angvel * params.dt)
+    return BlockState(blocks=blocks, contacts=contacts, step=state.step + 1)
+
+
+def glue_joints(state: BlockState, params: BlockParams, config: Config,
+                tolerance=0.0) -> BlockState:
+    """Mark every contact point that exists now with a gap below ``tolerance``
+    [m] as intact: the joints between these blocks get ``cohesion`` and
+    ``tension`` (:mod:`jdem.blocks.joint`)."""
+    c = neighbors.build(state.contacts, detect.bounding_circles(state.blocks), config)
+    g = detect.pair_geometry(state.blocks, c.i, c.j)
+    glued = c.valid[:, None] & g.exists & (g.separation <= tolerance)
+    hist = c.shear.at[:, 2:].set(glued.astype(c.shear.dtype))
+    return state._replace(contacts=c._replace(shear=hist))
+
+
+def critical_timestep(blocks: Blocks, params: BlockParams, *, points=None):
+    """000 eq 3-24 for every free block, dt < 2 sqrt(m / k), with the dashpots
+    counted as for the particles (:func:`jdem.timestep.damped_limit`).
+
+    The stiffness of a block is bounded by its contact points, each pushing with
+    k_n + k_s, doubled for neighbours moving against it (Gershgorin, as in
+    :mod:`jdem.timestep`); its rotation by the same springs at the bounding
+    radius.  ``points``: the contact points per block (default 2 per vertex,
+    an upper bound for blocks in a packing).  Returns a scalar [s].
+    """
+    b = blocks
+    z = 2.0 * jnp.sum(b.vert_valid, axis=1) if points is None else points
+    k = params.kn + params.ks
+    c = 2.0 * params.contact_damping * jnp.sqrt(b.mass * params.kn)
+    w2_tr = 2.0 * z * k / b.mass
+    g_tr = 2.0 * z * c / b.mass + params.viscous_damping
+    w2_rot = 2.0 * z * k * b.radius ** 2 / b.inertia
+    g_rot = 2.0 * z * c * b.radius ** 2 / b.inertia + params.viscous_damping
+    dt = jnp.minimum(damped_limit(w2_tr, g_tr), damped_limit(w2_rot, g_rot))
+    return jnp.min(jnp.where(b.valid & ~b.fixed, dt, jnp.inf))
+
+
+def recommended_timestep(blocks: Blocks, params: BlockParams, safety=0.5) -> float:
+    """``safety`` times :func:`critical_timestep` (host float)."""
+    return float(safety * critical_timestep(blocks, params))
+
+
+@functools.partial(jax.jit, static_argnames=("config", "n_records", "record_every", "observe"))
+def rollout(state: BlockState, params: BlockParams, config: Config, n_records: int,
+            record_every: int, observe=None):
+    """``n_records`` x ``record_every`` steps as a pure function (jit, vmap, grad).
+
+    observe  ``observe(state, params) -> dict`` recorded after each block of
+             steps (default: block positions, angles, velocities)
+    Returns ``(state, history)`` with each record stacked on a leading axis.
+    """
+    observe = observe or default_observe
+
+    def chunk(s, _):
+        s = jax.lax.fori_loop(0, record_every, lambda _, x: step(x, params, config), s)
+        return s, observe(s, params)
+
+    return jax.lax.scan(jax.checkpoint(chunk), state, None, length=n_records)
+
+
+def default_observe(state: BlockState, params: BlockParams) -> dict:
+    """Positions (B, 2), angles (B,), velocities (B, 2), spins (B,) and the step."""
+    b = state.blocks
+    return dict(pos=b.pos, angle=b.angle, vel=b.vel, angvel=b.angvel, step=state.step)
+
+
+def run(state: BlockState, params: BlockParams, config: Config, n_steps: int, *,
+        record_every: int = 100, observe=None, progress=True):
+    """Host loop over :func:`rollout` chunks: checks the time step first, grows
+    the pair list and re-runs a chunk when it overflowed, stops with the last
+    good state when the state turns non-finite, shows progress.
+
+    Returns ``(state, history as NumPy arrays)``.
+    """
+    if int(record_every) < 1 or int(n_steps) < 1:
+        raise InputError(f"n_steps and record_every must be >= 1, got {n_steps!r}, "
+                         f"{record_every!r}")
+    dt, crit = float(params.dt), float(critical_timestep(state.blocks, params))
+    if not np.isfinite(dt) or dt <= 0 or dt > crit:
+        raise InputError(f"params.dt = {dt!r} must be in (0, {crit:.4g}] s, the critical "
+                         f"step of these blocks (recommended_timestep gives a safe one)")
+    n_records = -(-int(n_steps) // int(record_every))
+    per_chunk = max(1, min(n_records, 50))
+    records = []
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=n_records * record_every, unit="step", desc="blocks", leave=False)
+    t0 = time.time()
+    try:
+        done = 0
+        while done < n_records:
+            k = min(per_chunk, n_records - done)
+            new, hist = rollout(state, params, config, k, int(record_every), observe)
+            if bool(neighbors.overflowed(new.contacts, config)):
+                contacts, config = neighbors.reallocate(
+                    state.contacts, detect.bounding_circles(state.blocks), config)
+                state = state._replace(contacts=contacts)
+                continue
+            if not all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(
+                    new.blocks) if jnp.issubdtype(x.dtype, jnp.floating)):
+                raise FloatingPointError(
+                    f"block run turned non-finite between steps {int(state.step)} and "
+                    f"{int(new.step)}; the last good state is at step {int(state.step)} "
+                    f"(lower dt or raise the damping)")
+            state = new
+            records.append(jax.tree_util.tree_map(np.asarray, hist))
+            done += k
+            if bar is not None:
+                bar.update(k * record_every)
+    finally:
+        if bar is not None:
+            bar.close()
+    history = {key: np.concatenate([r[key] for r in records]) for key in records[0]}
+    history["wall_time"] = time.time() - t0
+    return state, history

@@ -1,0 +1,149 @@
+"""Contact detection between convex blocks (000 §2.3.3, §3.4.1).
+
+Citations ("000 §3.4.1") refer to the documents listed in REFERENCES.md.
+
+Broad phase: the blocks' bounding circles go through the particles' cell list
+(:mod:`jdem.neighbors`), so blocks get the same fixed capacity, overflow flag,
+re-allocation verb and history carry-over as discs: a pair (i < j) is listed
+while the circles are closer than the skin, and the list is rebuilt when some
+centroid has moved half the skin (a bounding circle about the centroid does not
+change as the block turns).
+
+Narrow phase, per listed pair: the book treats an edge–edge contact as two
+corner–edge contacts and warns that corner–corner contacts need their own
+criterion (000 §3.4.1, fig 3-11; corner rounding, eq 3-34, 3-35, is its other
+remedy).  Here the reference edge is the edge of either block with the
+largest separation from the other block (the separating-axis measure); the
+incident edge of the other block is its edge most nearly opposed to it, and is
+clipped to the reference edge's extent.  The (at most two) clipped end points
+below the reference edge are the contacts: two for an edge–edge contact
+(flush faces, however aligned their corners are), one for a corner–edge contact.
+Each point's separation is its signed distance from the reference edge's line
+(negative: overlap), and the contact point lies halfway across the overlap.
+
+Per pair the result is oriented from block i to block j: ``normal`` points
+from i into j, and a positive normal force pushes j along it.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jdem.blocks.geometry import Blocks, world_vertices
+from jdem.state import Particles
+
+POINTS_PER_PAIR = 2
+
+
+class PairGeometry(NamedTuple):
+    """Contact geometry of the listed pairs (C pairs, 2 points each).
+
+    normal      (C, 2)    unit normal from block i into block j
+    point       (C, 2, 2) contact points [m]
+    separation  (C, 2)    signed gap along ``normal`` [m]; negative: overlap
+    exists      (C, 2)    bool: the clipped point exists (a pair whose incident
+                          edge is clipped away has none)
+    length      (C,)      length of the clipped incident edge [m] (0 for a
+                          corner–edge contact)
+    """
+
+    normal: jnp.ndarray
+    point: jnp.ndarray
+    separation: jnp.ndarray
+    exists: jnp.ndarray
+    length: jnp.ndarray
+
+
+def bounding_circles(blocks: Blocks) -> Particles:
+    """The blocks' bounding circles as :class:`jdem.state.Particles` (position,
+    radius and validity are what the cell list reads; the rest is zero)."""
+    b, f = blocks.pos.shape[0], blocks.pos.dtype
+    z1 = jnp.zeros((b,), f)
+    z2 = jnp.zeros((b, 2), f)
+    return Particles(pos=blocks.pos, vel=blocks.vel, angvel=blocks.angvel, radius=blocks.radius,
+                     mass=blocks.mass, gravity_mass=blocks.mass, inertia=blocks.inertia,
+                     material=jnp.zeros((b,), jnp.int32), fixed_vel=jnp.zeros((b, 2), bool),
+                     fixed_rot=jnp.zeros((b,), bool), ext_force=z2, ext_torque=z1,
+                     valid=blocks.valid)
+
+
+def _edges(verts, valid):
+    """Start points, outward unit normals and lengths of a CCW polygon's edges."""
+    nxt = jnp.roll(verts, -1, axis=0)
+    e = nxt - verts
+    length = jnp.sqrt(jnp.sum(e * e, axis=-1))
+    safe = jnp.where(valid & (length > 0), length, 1.0)
+    normal = jnp.stack([e[:, 1], -e[:, 0]], axis=-1) / safe[:, None]
+    return verts, nxt, normal, valid & (length > 0)
+
+
+def _max_separation(start_a, normal_a, edge_ok_a, verts_b, valid_b):
+    """For each edge k of A, the least signed distance of B's vertices from its
+    line; returns the largest over the edges and its index."""
+    d = normal_a @ verts_b.T - jnp.sum(normal_a * start_a, axis=-1)[:, None]   # (V, V)
+    d = jnp.where(valid_b[None, :], d, jnp.inf)
+    sep = jnp.where(edge_ok_a, jnp.min(d, axis=1), -jnp.inf)
+    k = jnp.argmax(sep)
+    return sep[k], k
+
+
+def _clip(p, q, t, lo, hi):
+    """Parameters [s0, s1] of the part of segment p + s (q - p), 0 <= s <= 1,
+    with lo <= t . x <= hi; s0 > s1 when nothing is left."""
+    a, b = jnp.dot(t, p), jnp.dot(t, q - p)
+    tiny = jnp.abs(b) < 1e-30
+    safe = jnp.where(tiny, 1.0, b)
+    s_lo, s_hi = (lo - a) / safe, (hi - a) / safe
+    s0 = jnp.where(tiny, jnp.where((a >= lo) & (a <= hi), 0.0, 2.0),
+                   jnp.maximum(0.0, jnp.minimum(s_lo, s_hi)))
+    s1 = jnp.where(tiny, jnp.where((a >= lo) & (a <= hi), 1.0, -1.0),
+                   jnp.minimum(1.0, jnp.maximum(s_lo, s_hi)))
+    return s0, s1
+
+
+def pair_geometry_one(verts_i, valid_i, verts_j, valid_j, scale):
+    """Contact geometry of one pair of convex polygons (world vertices (V, 2)).
+
+    ``scale`` [m] sets the tie-break between two equally good reference edges
+    (block i's edge is kept unless j's is better by 1e-6 scale), so that the
+    choice does not flip at round-off.  Returns the fields of :class:`PairGeometry`
+    for one pair.
+    """
+    si, ei, ni, oki = _edges(verts_i, valid_i)
+    sj, ej, nj, okj = _edges(verts_j, valid_j)
+    sep_i, ki = _max_separation(si, ni, oki, verts_j, valid_j)
+    sep_j, kj = _max_separation(sj, nj, okj, verts_i, valid_i)
+    flip = sep_j > sep_i + 1e-6 * scale          # reference edge on block j
+
+    ref_start = jnp.where(flip, sj[kj], si[ki])
+    ref_end = jnp.where(flip, ej[kj], ei[ki])
+    ref_n = jnp.where(flip, nj[kj], ni[ki])
+    inc_start = jnp.where(flip, si, sj)
+    inc_end = jnp.where(flip, ei, ej)
+    inc_n = jnp.where(flip, ni, nj)
+    inc_ok = jnp.where(flip, oki, okj)
+    m = jnp.argmin(jnp.where(inc_ok, inc_n @ ref_n, jnp.inf))
+    p, q = inc_start[m], inc_end[m]
+
+    t = ref_end - ref_start
+    t = t / jnp.sqrt(jnp.sum(t * t))
+    s0, s1 = _clip(p, q, t, jnp.dot(t, ref_start), jnp.dot(t, ref_end))
+    exists = s0 <= s1
+    pts = jnp.stack([p + s0 * (q - p), p + s1 * (q - p)])              # (2, 2)
+    sep = pts @ ref_n - jnp.dot(ref_n, ref_start)                      # (2,)
+    mid = pts - 0.5 * sep[:, None] * ref_n[None, :]
+    length = jnp.where(exists, jnp.abs(s1 - s0) * jnp.sqrt(jnp.sum((q - p) ** 2)), 0.0)
+    # the reference normal points out of the reference block into the other
+    normal = jnp.where(flip, -ref_n, ref_n)
+    return normal, mid, sep, jnp.stack([exists, exists & (s1 > s0)]), length
+
+
+def pair_geometry(blocks: Blocks, i, j) -> PairGeometry:
+    """:func:`pair_geometry_one` for the pairs (i, j) (C,) of a list."""
+    w = world_vertices(blocks)
+    scale = blocks.radius[i] + blocks.radius[j]
+    n, pt, sep, ex, length = jax.vmap(pair_geometry_one)(
+        w[i], blocks.vert_valid[i], w[j], blocks.vert_valid[j], scale)
+    return PairGeometry(normal=n, point=pt, separation=sep, exists=ex, length=length)

@@ -1,0 +1,280 @@
+"""Rigid blocks (000 ch. 2, 3): geometry, detection, joint laws and the book's
+verification cases against analytic values, in float64."""
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jdem import InputError
+from jdem import blocks as bk
+from jdem.blocks import joint
+
+G = 9.81
+
+
+def _base():
+    return bk.rectangle(-2.0, -1.0, 4.0, 1.0)
+
+
+def _incline(width, height, slope_deg, phi_deg, *, kn=1e9, zeta=0.3, dx=0.0):
+    """A block resting on a fixed base, gravity tilted by the slope (the same as
+    a tilted base): returns state, params, config."""
+    blk = bk.rectangle(dx - width / 2, 0.0, width, height)
+    blocks = bk.make_blocks([_base(), blk], 2500.0, fixed=[0])
+    state, config = bk.make_state(blocks)
+    th = np.deg2rad(slope_deg)
+    p = bk.make_params(kn=kn, friction=np.tan(np.deg2rad(phi_deg)), contact_damping=zeta,
+                       gravity=G * np.array([np.sin(th), -np.cos(th)]))
+    return state, p._replace(dt=jnp.asarray(bk.recommended_timestep(blocks, p))), config
+
+
+# ----------------------------------------------------------------------------- geometry
+def test_polygon_properties_match_closed_forms():
+    a, b = 0.6, 0.2
+    area, c, polar = bk.polygon_properties(bk.rectangle(1.0, 2.0, a, b))
+    assert area == pytest.approx(a * b, rel=1e-12)
+    np.testing.assert_allclose(c, [1.0 + a / 2, 2.0 + b / 2], rtol=1e-12)
+    assert polar == pytest.approx(a * b * (a * a + b * b) / 12.0, rel=1e-12)
+    tri = np.array([[0.0, 0.0], [3.0, 0.0], [0.0, 3.0]])     # clockwise order is accepted
+    blocks = bk.make_blocks([tri[::-1]], 2.0)
+    assert float(blocks.mass[0]) == pytest.approx(2.0 * 4.5, rel=1e-12)
+    np.testing.assert_allclose(blocks.pos[0], [1.0, 1.0], rtol=1e-12)
+    # right isosceles triangle, legs L: J_c = L^4 / 18
+    assert float(blocks.inertia[0]) == pytest.approx(2.0 * 3.0 ** 4 / 18.0, rel=1e-12)
+
+
+def test_bad_blocks_are_refused_by_name():
+    with pytest.raises(InputError, match="not convex"):
+        bk.make_blocks([[[0, 0], [2, 0], [1, 0.2], [2, 2], [0, 2]]], 1.0)
+    with pytest.raises(InputError, match="density"):
+        bk.make_blocks([bk.rectangle(0, 0, 1, 1)], -1.0)
+    with pytest.raises(InputError, match="polygon 0"):
+        bk.make_blocks([[[0, 0], [1, 1]]], 1.0)
+    with pytest.raises(InputError, match="local_damping"):
+        bk.make_params(kn=1e9, local_damping=1.0)
+    with pytest.raises(InputError, match="kn"):
+        bk.make_params(kn=0.0)
+
+
+def test_flush_faces_give_two_points_and_a_corner_one():
+    """Edge-edge: two contact points at the ends of the shared length, with the
+    overlap as separation, also when the corners are exactly aligned (a stack of
+    equal blocks, the corner-corner case of 000 fig 3-11).  Corner-edge: one."""
+    under = bk.rectangle(0.0, 0.0, 1.0, 1.0)
+    over = bk.rectangle(0.0, 0.999, 1.0, 1.0)              # aligned corners, 1 mm overlap
+    g = bk.pair_geometry(bk.make_blocks([under, over], 1.0), jnp.array([0]), jnp.array([1]))
+    np.testing.assert_allclose(g.normal[0], [0.0, 1.0], atol=1e-12)
+    assert bool(jnp.all(g.exists[0]))
+    np.testing.assert_allclose(g.separation[0], [-1e-3, -1e-3], rtol=1e-9)
+    np.testing.assert_allclose(np.sort(g.point[0][:, 0]), [0.0, 1.0], atol=1e-12)
+    assert float(g.length[0]) == pytest.approx(1.0, rel=1e-12)
+    # a diamond standing on its corner, 2 mm deep
+    s = 0.5
+    diamond = np.array([[0.5, -0.002], [0.5 + s, s - 0.002], [0.5, 2 * s - 0.002],
+                        [0.5 - s, s - 0.002]])
+    g = bk.pair_geometry(bk.make_blocks([bk.rectangle(-1, -1, 3, 1), diamond], 1.0),
+                         jnp.array([0]), jnp.array([1]))
+    ex = np.asarray(g.exists[0])
+    sep = np.asarray(g.separation[0])
+    assert int(np.sum(ex & (sep < 0))) == 1
+    assert float(sep[ex & (sep < 0)][0]) == pytest.approx(-0.002, rel=1e-9)
+    # apart by 1 cm: positive separations, no force
+    apart = bk.rectangle(0.0, 1.01, 1.0, 1.0)
+    g = bk.pair_geometry(bk.make_blocks([under, apart], 1.0), jnp.array([0]), jnp.array([1]))
+    assert float(jnp.min(g.separation[0])) == pytest.approx(0.01, rel=1e-9)
+
+
+# ----------------------------------------------------------------------------- joint law
+def test_coulomb_point_law():
+    """000 eq 2-1, 2-2: F_n = k_n u_n, dF_s = -k_s du_s, |F_s| <= C + mu F_n while
+    intact, then friction only and no tension."""
+    kn, ks, mu, c, t = 1e6, 4e5, 0.5, 100.0, 50.0
+    fn, fs, intact, slide = joint.coulomb_point(1e-4, 1e-4, 0.0, True, kn, ks, mu, c, t)
+    assert float(fn) == pytest.approx(100.0) and float(fs) == pytest.approx(-40.0)
+    assert bool(intact) and not bool(slide)
+    fn, fs, intact, slide = joint.coulomb_point(1e-4, 1e-3, 0.0, True, kn, ks, mu, c, t)
+    assert bool(slide) and not bool(intact)
+    assert float(fs) == pytest.approx(-mu * 100.0)            # cohesion lost on failure
+    fn, fs, intact, _ = joint.coulomb_point(-4e-5, 0.0, 0.0, True, kn, ks, mu, c, t)
+    assert float(fn) == pytest.approx(-40.0) and bool(intact)  # below the tensile strength
+    fn, fs, intact, _ = joint.coulomb_point(-6e-5, 0.0, 0.0, True, kn, ks, mu, c, t)
+    assert float(fn) == 0.0 and not bool(intact)
+    fn, _, _, _ = joint.coulomb_point(-1e-5, 0.0, 0.0, False, kn, ks, mu, c, t)
+    assert float(fn) == 0.0
+
+
+def test_barton_friction_angle():
+    """000 eq 3-43: phi = phi_b + JRC log10(JCS / sigma_n)."""
+    mu = joint.barton_friction(1e6, np.deg2rad(30.0), 10.0, 1e8)
+    assert float(mu) == pytest.approx(np.tan(np.deg2rad(30.0 + 10.0 * 2.0)), rel=1e-12)
+    assert float(joint.barton_friction(1e-9, 0.5, 10.0, 1e8)) == pytest.approx(
+        np.tan(np.deg2rad(70.0)))
+
+
+# ----------------------------------------------------------------------------- verification
+def test_resting_block_oscillates_at_the_spring_frequency():
+    """A block dropped onto two contact points (000 eq 2-1) with no damping
+    bounces at omega = sqrt(2 k_n / m) about the static overlap m g / (2 k_n)."""
+    state, p, config = _incline(0.5, 0.5, 0.0, 30.0, zeta=0.0)
+    m = float(state.blocks.mass[1])
+    p = p._replace(dt=jnp.asarray(0.1 * float(p.dt)))
+    period = 2 * np.pi * np.sqrt(m / (2 * float(p.kn)))
+    n = int(round(3 * period / float(p.dt)))
+    _, hist = bk.run(state, p, config, n, record_every=1, progress=False)
+    y = hist["pos"][:, 1, 1] - 0.25
+    static = -m * G / (2 * float(p.kn))
+    assert float(np.mean(y)) == pytest.approx(static, rel=2e-3)
+    # period from the times of the lowest points
+    k = np.flatnonzero((y[1:-1] < y[:-2]) & (y[1:-1] <= y[2:])) + 1
+    measured = np.mean(np.diff(k)) * float(p.dt)
+    assert measured == pytest.approx(period, rel=2e-3)
+
+
+@pytest.mark.parametrize("slope, slides", [(28.0, False), (32.0, True), (40.0, True)])
+def test_block_on_incline_slides_iff_slope_exceeds_friction_angle(slope, slides):
+    """000 §2.2 Coulomb slip: on a 30 degree joint a block stays below 30 degrees and
+    slides above, with acceleration g (sin theta - mu cos theta)."""
+    state, p, config = _incline(0.5, 0.5, slope, 30.0)
+    n = int(0.3 / float(p.dt))
+    _, hist = bk.run(state, p, config, n, record_every=50, progress=False)
+    x = hist["pos"][:, 1, 0]
+    t = hist["step"] * float(p.dt)
+    if not slides:
+        assert abs(x[-1]) < 1e-4 and float(np.max(np.abs(hist["angle"][:, 1]))) < 1e-4
+        return
+    th, mu = np.deg2rad(slope), np.tan(np.deg2rad(30.0))
+    late = t > 0.05
+    accel = 2 * np.polyfit(t[late], x[late], 2)[0]
+    assert accel == pytest.approx(G * (np.sin(th) - mu * np.cos(th)), rel=1e-3)
+
+
+def _onset_regime(width, height, slope_deg, phi_deg):
+    """What a block (b x h) on an incline does first, from rigid-body dynamics
+    at rest: the one mode whose contact force is consistent.
+
+    * stays: tan theta <= b / h (the weight's line inside the base) and theta <= phi;
+    * topples: it turns about its downhill corner with alpha = M / I_pivot,
+      I_pivot = m (b^2 + h^2) / 3, and the corner holds: the force it needs,
+      F = m (a_centroid - g), is inside the friction cone |F_t| <= mu F_n;
+    * slides: theta > phi and the sliding contact force (inclined at phi to the
+      normal) passes through the base, mu <= b / h, so it does not turn;
+    * both, otherwise.
+
+    The static chart (slides iff theta > phi, topples iff tan theta > b / h)
+    differs in its "slides and topples" region: there a block may only topple
+    (the turning block's own acceleration unloads the friction) or only slide."""
+    th, mu = np.deg2rad(slope_deg), np.tan(np.deg2rad(phi_deg))
+    if np.tan(th) <= width / height and slope_deg <= phi_deg:
+        return "stable"
+    if np.tan(th) > width / height:
+        alpha = G * (width / 2 * np.cos(th) - height / 2 * np.sin(th)) / \
+            ((width ** 2 + height ** 2) / 3)
+        f_t = alpha * (-height / 2) - G * np.sin(th)        # per unit mass
+        f_n = alpha * (-width / 2) + G * np.cos(th)
+        if abs(f_t) <= mu * f_n:
+            return "topples"
+    if slope_deg > phi_deg and mu <= width / height:
+        return "slides"
+    return "both"
+
+
+@pytest.mark.parametrize("width, height, slope, expect", [
+    (0.5, 0.5, 20.0, "stable"),        # tan 20 < b/h = 1, 20 < phi
+    (0.2, 0.8, 20.0, "topples"),       # tan 20 > b/h = 0.25, 20 < phi
+    (0.5, 0.5, 35.0, "slides"),        # tan 35 < b/h, 35 > phi
+    (0.2, 0.8, 35.0, "topples"),       # static chart: both; the pivot holds (|F_t|/F_n 0.35)
+    (0.6, 1.0, 40.0, "slides"),        # static chart: both; mu = 0.58 < b/h = 0.6: no turn
+    (0.5, 1.0, 50.0, "both"),          # pivot needs |F_t|/F_n = 0.64 > mu; mu > b/h
+])
+def test_block_on_incline_topples_or_slides(width, height, slope, expect):
+    """The regimes of a block on an incline, phi = 30 degrees: the simulation
+    does at onset what rigid-body dynamics says (:func:`_onset_regime`)."""
+    assert _onset_regime(width, height, slope, 30.0) == expect
+    state, p, config = _incline(width, height, slope, 30.0)
+    _, hist = bk.run(state, p, config, int(0.3 / float(p.dt)), record_every=200,
+                     progress=False)
+    a = hist["angle"][:, 1]
+    turned = abs(float(a[-1])) > 0.02
+    # sliding: the downhill base corner (the pivot of a toppling block) moves
+    corner = hist["pos"][:, 1, 0] + width / 2 * np.cos(a) + height / 2 * np.sin(a)
+    slid = float(corner[-1]) - width / 2 > 2e-3
+    got = {(False, False): "stable", (True, False): "topples", (False, True): "slides",
+           (True, True): "both"}[(turned, slid)]
+    assert got == expect, (float(a[-1]), float(corner[-1]) - width / 2)
+
+
+def test_stack_settles_with_base_reaction_equal_to_weight():
+    """Three blocks stacked off-centre on a fixed base, damped to rest (local
+    damping 0.7, 000 §3.2): the base carries their weight to 1 %, the stack
+    does not move sideways."""
+    polys = [_base(), bk.rectangle(-0.5, 0.0, 1.0, 0.4), bk.rectangle(-0.3, 0.401, 0.7, 0.3),
+             bk.rectangle(-0.2, 0.703, 0.3, 0.5)]
+    blocks = bk.make_blocks(polys, 2600.0, fixed=[0])
+    state, config = bk.make_state(blocks)
+    p = bk.make_params(kn=5e8, friction=0.6, contact_damping=0.2, local_damping=0.7)
+    p = p._replace(dt=jnp.asarray(bk.recommended_timestep(blocks, p)))
+    state, hist = bk.run(state, p, config, 20000, record_every=500, progress=False)
+    _, force, _, _ = bk.contact_forces(state, p)
+    weight = float(jnp.sum(blocks.mass[1:])) * G
+    assert float(force[0, 1]) == pytest.approx(-weight, rel=1e-2)
+    assert abs(float(force[0, 0])) < 1e-3 * weight
+    assert float(np.max(np.abs(hist["pos"][-1, 1:, 0] - np.asarray(blocks.pos[1:, 0])))) < 1e-4
+    assert float(np.max(np.abs(hist["vel"][-1]))) < 1e-4
+
+
+def test_glued_joint_holds_up_to_its_tensile_strength():
+    """A block hanging under a fixed one on a glued joint of tensile strength T
+    per point (two points): it hangs while its weight is below 2 T and falls
+    once it is above."""
+    top = bk.rectangle(-1.0, 0.0, 2.0, 0.5)
+    hang = bk.rectangle(-0.25, -0.5, 0.5, 0.5)
+    blocks = bk.make_blocks([top, hang], 2500.0, fixed=[0])
+    weight = float(blocks.mass[1]) * G
+    for strength, falls in [(0.6 * weight, False), (0.4 * weight, True)]:
+        state, config = bk.make_state(blocks)
+        p = bk.make_params(kn=1e9, friction=0.5, tension=strength, contact_damping=0.5)
+        p = p._replace(dt=jnp.asarray(bk.recommended_timestep(blocks, p)))
+        state = bk.glue_joints(state, p, config)
+        _, hist = bk.run(state, p, config, 8000, record_every=500, progress=False)
+        drop = float(hist["pos"][0, 1, 1] - hist["pos"][-1, 1, 1])
+        assert (drop > 0.05) == falls, (strength / weight, drop)
+
+
+def test_timestep_above_critical_is_refused():
+    state, p, config = _incline(0.5, 0.5, 0.0, 30.0)
+    crit = float(bk.critical_timestep(state.blocks, p))
+    with pytest.raises(InputError, match="params.dt"):
+        bk.run(state, p._replace(dt=jnp.asarray(1.5 * crit)), config, 10, progress=False)
+
+
+# ----------------------------------------------------------------------------- gradients
+def test_friction_and_stiffness_recovered_from_a_sliding_history():
+    """Differentiable block method: the friction coefficient and the joint
+    stiffness of a block sliding down a 35 degree slope (phi = 30) are recovered
+    from its recorded downhill travel and settlement (least squares,
+    forward-mode Jacobian through the rollout), from -20 % and -50 % starts.
+    (A start above the slope's angle would not slide: no information on mu; the
+    contact dashpots at 0.7 of critical damp the bounce, which would otherwise
+    make the misfit oscillate in k_n.)"""
+    import optimistix as optx
+
+    state, p, config = _incline(0.5, 0.5, 35.0, 30.0, kn=2e8, zeta=0.7)
+    n_rec, every = 40, 100
+
+    def history(mu, kn):
+        q = p._replace(friction=mu, kn=kn, ks=kn / 2.5)
+        _, h = bk.rollout(state, q, config, n_rec, every)
+        return h["pos"][:, 1, 0], h["pos"][:, 1, 1] - 0.25
+
+    truth = (float(p.friction), float(p.kn))
+    x_t, y_t = history(*truth)
+
+    def residuals(u, _):
+        x, y = history(truth[0] * jnp.exp(u[0]), truth[1] * jnp.exp(u[1]))
+        return jnp.concatenate([(x - x_t) / jnp.max(jnp.abs(x_t)),
+                                (y - y_t) / jnp.max(jnp.abs(y_t))])
+
+    u0 = jnp.log(jnp.asarray([0.8, 0.5]))
+    sol = optx.least_squares(residuals, optx.LevenbergMarquardt(rtol=1e-8, atol=1e-12), u0,
+                             options=dict(jac="fwd"), max_steps=30, throw=False)
+    got = np.exp(np.asarray(sol.value))
+    np.testing.assert_allclose(got, [1.0, 1.0], rtol=1e-3)
