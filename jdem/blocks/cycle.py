@@ -46,13 +46,19 @@ HISTORY = 2 * detect.POINTS_PER_PAIR     # shear force and intact flag per point
 
 
 class BlockParams(NamedTuple):
-    """Traced parameters of a block system (scalars unless noted).
+    """Traced parameters of a block system.
+
+    The joint properties form a table over the blocks' materials: the contact
+    between a block of material a and one of material b uses entry [a, b]
+    (symmetric, (M, M); M = 1 for one kind of joint).  So a joint set, a fault or
+    the rock between two joints can each have their own.
 
     dt               time step [s]
-    kn, ks           normal and shear stiffness per contact point [N/m] (000 eq 2-1, 2-2)
-    friction         mu = tan(phi) of the joints [-]
-    cohesion         shear strength of an intact point at zero normal force [N]
-    tension          tensile strength of an intact point [N]
+    kn, ks           (M, M) normal and shear stiffness per contact point [N/m]
+                     (000 eq 2-1, 2-2)
+    friction         (M, M) mu = tan(phi) of the joints [-]
+    cohesion         (M, M) shear strength of an intact point at zero normal force [N]
+    tension          (M, M) tensile strength of an intact point [N]
     contact_damping  ratio of critical damping of the normal and shear dashpots [-]
     local_damping    alpha of 000 eq 3-19 [-], 0 <= alpha < 1
     viscous_damping  mass-proportional damping c [1/s] (000 eq 3-9)
@@ -71,22 +77,44 @@ class BlockParams(NamedTuple):
     gravity: jnp.ndarray
 
 
+JOINT_TABLE = ("kn", "ks", "friction", "cohesion", "tension")
+
+
 def make_params(*, kn, ks=None, friction=0.5, cohesion=0.0, tension=0.0, contact_damping=0.0,
                 local_damping=0.0, viscous_damping=0.0, gravity=(0.0, -9.81), dt=None,
                 dtype=None) -> BlockParams:
-    """Block parameters with checks; ``ks`` defaults to kn / (2 (1 + 0.25))
-    (000 eq 3-33 with nu = 0.25); ``dt`` to NaN (set it with
-    :func:`recommended_timestep` before running)."""
-    ks = kn / 2.5 if ks is None else ks
-    vals = dict(kn=kn, ks=ks, friction=friction, cohesion=cohesion, tension=tension,
-                contact_damping=contact_damping, local_damping=local_damping,
-                viscous_damping=viscous_damping)
-    for name, v in vals.items():
+    """Block parameters with checks.
+
+    The joint properties (``kn``, ``ks``, ``friction``, ``cohesion``,
+    ``tension``) are numbers (one kind of joint) or symmetric (M, M) tables over
+    the block materials (:class:`BlockParams`).  ``ks`` defaults to
+    kn / (2 (1 + 0.25)) (000 eq 3-33 with nu = 0.25); ``dt`` to NaN (set it
+    with :func:`recommended_timestep` before running).
+    """
+    ks = np.asarray(kn, dtype=np.float64) / 2.5 if ks is None else ks
+    table = dict(kn=kn, ks=ks, friction=friction, cohesion=cohesion, tension=tension)
+    arrays = {k: np.asarray(v, dtype=np.float64) for k, v in table.items()}
+    # the table size comes from kn if it is a table, else from the first table given
+    m = next((a.shape[0] for a in arrays.values() if a.ndim == 2), 1)
+    for name, a in arrays.items():
+        if a.ndim == 0:
+            a = np.full((m, m), float(a))
+        if a.shape != (m, m):
+            raise InputError(f"block parameter {name} must be a number or an ({m}, {m}) "
+                             f"table over the materials, got shape {a.shape}")
+        if not np.allclose(a, a.T, rtol=0, atol=0):
+            raise InputError(f"block parameter {name} must be a symmetric table, got {a.tolist()}")
+        if not np.all(np.isfinite(a)) or np.any(a < 0):
+            raise InputError(f"block parameter {name} must be finite and >= 0, got {a.tolist()}")
+        arrays[name] = a
+    if np.any(arrays["kn"] <= 0):
+        raise InputError(f"block parameter kn must be > 0, got {arrays['kn'].tolist()}")
+    scalars = dict(contact_damping=contact_damping, local_damping=local_damping,
+                   viscous_damping=viscous_damping)
+    for name, v in scalars.items():
         v = float(v)
         if not np.isfinite(v) or v < 0:
             raise InputError(f"block parameter {name} must be finite and >= 0, got {v!r}")
-    if float(kn) <= 0:
-        raise InputError(f"block parameter kn must be > 0, got {kn!r}")
     if not float(local_damping) < 1.0:
         raise InputError(f"block parameter local_damping must be < 1, got {local_damping!r}")
     g = np.asarray(gravity, dtype=np.float64)
@@ -95,7 +123,8 @@ def make_params(*, kn, ks=None, friction=0.5, cohesion=0.0, tension=0.0, contact
     f = jnp.zeros(()).dtype if dtype is None else dtype
     a = lambda x: jnp.asarray(x, f)   # noqa: E731
     return BlockParams(dt=a(np.nan if dt is None else dt), gravity=a(g),
-                       **{k: a(v) for k, v in vals.items()})
+                       **{k: a(v) for k, v in arrays.items()},
+                       **{k: a(v) for k, v in scalars.items()})
 
 
 class BlockState(NamedTuple):
@@ -177,9 +206,10 @@ def contact_forces(state: BlockState, params: BlockParams):
     vn = jnp.sum(v_rel * n, axis=-1)                       # 000 eq 2-10
     vt = jnp.sum(v_rel * t, axis=-1)
     overlap = -g.separation
+    ma, mb = b.material[c.i], b.material[c.j]
+    kn, ks, mu, coh, ten = (getattr(params, name)[ma, mb][:, None] for name in JOINT_TABLE)
     fn, fs, intact, sliding = joint.coulomb_point(
-        overlap, vt * params.dt, shear_old, intact_old & active, params.kn, params.ks,
-        params.friction, params.cohesion, params.tension)
+        overlap, vt * params.dt, shear_old, intact_old & active, kn, ks, mu, coh, ten)
     # dashpots (000 eq 2-12 as a fraction of critical); reduced mass, a fixed
     # block counting as infinitely heavy
     mi = jnp.where(b.fixed[c.i], jnp.inf, b.mass[c.i])
@@ -187,8 +217,8 @@ def contact_forces(state: BlockState, params: BlockParams):
     m_red = jnp.where(jnp.isinf(mi), mj, jnp.where(jnp.isinf(mj), mi, mi * mj / (mi + mj)))
     m_red = jnp.where(jnp.isinf(m_red), 0.0, m_red)[:, None]
     zeta = params.contact_damping
-    dn = -2.0 * zeta * jnp.sqrt(m_red * params.kn) * vn
-    ds = jnp.where(sliding, 0.0, -2.0 * zeta * jnp.sqrt(m_red * params.ks) * vt)
+    dn = -2.0 * zeta * jnp.sqrt(m_red * kn) * vn
+    ds = jnp.where(sliding, 0.0, -2.0 * zeta * jnp.sqrt(m_red * ks) * vt)
     fn_total = jnp.where(intact, fn + dn, jnp.maximum(fn + dn, 0.0))
     fn_total = jnp.where(active, fn_total, 0.0)
     fs_total = jnp.where(active, fs + ds, 0.0)
@@ -252,8 +282,9 @@ def critical_timestep(blocks: Blocks, params: BlockParams, *, points=None):
     """
     b = blocks
     z = 2.0 * jnp.sum(b.vert_valid, axis=1) if points is None else points
-    k = params.kn + params.ks
-    c = 2.0 * params.contact_damping * jnp.sqrt(b.mass * params.kn)
+    kn = jnp.max(params.kn[b.material], axis=1)          # stiffest joint of each block
+    k = kn + jnp.max(params.ks[b.material], axis=1)
+    c = 2.0 * params.contact_damping * jnp.sqrt(b.mass * kn)
     w2_tr = 2.0 * z * k / b.mass
     g_tr = 2.0 * z * c / b.mass + params.viscous_damping
     w2_rot = 2.0 * z * k * b.radius ** 2 / b.inertia
@@ -302,6 +333,12 @@ def run(state: BlockState, params: BlockParams, config: Config, n_steps: int, *,
     if int(record_every) < 1 or int(n_steps) < 1:
         raise InputError(f"n_steps and record_every must be >= 1, got {n_steps!r}, "
                          f"{record_every!r}")
+    n_mat = int(params.kn.shape[0])
+    used = int(np.max(np.where(np.asarray(state.blocks.valid), np.asarray(state.blocks.material),
+                               0)))
+    if used >= n_mat:
+        raise InputError(f"block material index {used} is out of range: the joint tables of "
+                         f"params have {n_mat} material(s)")
     dt, crit = float(params.dt), float(critical_timestep(state.blocks, params))
     if not np.isfinite(dt) or dt <= 0 or dt > crit:
         raise InputError(f"params.dt = {dt!r} must be in (0, {crit:.4g}] s, the critical "

@@ -38,6 +38,7 @@ class Blocks(NamedTuple):
     radius      (B,)      bounding radius about the centroid [m] (broad phase)
     mass        (B,)      [kg]
     inertia     (B,)      polar moment about the centroid [kg m^2]
+    material    (B,)      int index into the joint tables of ``BlockParams``
     fixed       (B,)      bool: the block's velocity and spin are prescribed
                           (they keep their value; a fixed block may still move)
     ext_force   (B, 2)    applied force [N]
@@ -54,6 +55,7 @@ class Blocks(NamedTuple):
     radius: Array
     mass: Array
     inertia: Array
+    material: Array
     fixed: Array
     ext_force: Array
     ext_torque: Array
@@ -95,13 +97,14 @@ def _check_convex(v, k):
         raise InputError(f"block {k} has two equal consecutive vertices")
 
 
-def make_blocks(polygons, density, *, fixed=None, vel=None, angvel=None, capacity=None,
-                max_vertices=None, dtype=None) -> Blocks:
+def make_blocks(polygons, density, *, fixed=None, vel=None, angvel=None, material=None,
+                capacity=None, max_vertices=None, dtype=None) -> Blocks:
     """Blocks from a list of convex polygons (each (n_k, 2) global vertices [m]).
 
     density   [kg/m^3] (per unit thickness in 2D), a number or one per block
     fixed     indices or a (B,) bool mask of blocks whose motion is prescribed
     vel, angvel  initial velocities (B, 2) [m/s], (B,) [rad/s]
+    material  (B,) ints: each block's row in the joint tables (default 0)
     capacity  rows to allocate (default: the number of polygons)
     max_vertices  V (default: the largest polygon)
     dtype     float dtype (default: JAX's default float)
@@ -168,12 +171,19 @@ def make_blocks(polygons, density, *, fixed=None, vel=None, angvel=None, capacit
         if w.shape not in ((n,), ()):
             raise InputError(f"angvel must have shape ({n},) or (), got {w.shape}")
         w0[:n] = w
+    mat = np.zeros(cap, np.int32)
+    if material is not None:
+        mm = np.asarray(material)
+        if mm.shape != (n,) or not np.issubdtype(mm.dtype, np.integer) or np.any(mm < 0):
+            raise InputError(f"material must be ({n},) non-negative ints, got {mm!r}")
+        mat[:n] = mm
     valid = np.arange(cap) < n
     f = jnp.zeros(()).dtype if dtype is None else dtype
     a = lambda x: jnp.asarray(x, f)   # noqa: E731
     return Blocks(pos=a(pos), angle=a(np.zeros(cap)), vel=a(v0), angvel=a(w0),
                   verts=a(verts), vert_valid=jnp.asarray(vvalid), radius=a(radius),
-                  mass=a(mass), inertia=a(inertia), fixed=jnp.asarray(fixed_mask),
+                  mass=a(mass), inertia=a(inertia), material=jnp.asarray(mat),
+                  fixed=jnp.asarray(fixed_mask),
                   ext_force=a(np.zeros((cap, 2))), ext_torque=a(np.zeros(cap)),
                   valid=jnp.asarray(valid))
 

@@ -1,0 +1,217 @@
+"""The book's verification cases for the block method, set up once for the tests
+and the experiments (000 §2.2, §3.4, §9.2.1).
+
+Citations ("000 eq 9-3") refer to the documents listed in REFERENCES.md.
+
+* :func:`incline`: a block on a fixed base under gravity tilted by the slope
+  (the same as a tilted base): sliding, toppling, both or neither.
+* :func:`stack`: blocks stacked on a fixed base, to be damped to rest.
+* :func:`joint_chain`: a wave across a joint (000 §9.2.1, eq 9-1..9-6) in its
+  one-dimensional form: a row of square blocks glued face to face (the intact
+  rock: per pair a spring k = E h / dx), one joint of stiffness K = kappa h in
+  the middle, and an incident pulse from the left.  :func:`lattice_transmission`
+  is the exact transmission and reflection of that row at a frequency, and
+  :func:`continuum_transmission` its long-wave limit, the displacement-
+  discontinuity joint |T| = (1 + (omega Z / 2 K)^2)^(-1/2) between half-spaces
+  of impedance Z = rho c h.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from jdem.blocks.cycle import glue_joints, make_params, make_state, recommended_timestep
+from jdem.blocks.geometry import make_blocks, rectangle
+
+G = 9.81
+
+
+def incline(width, height, slope_deg, phi_deg, *, kn=1e9, contact_damping=0.3, density=2500.0,
+            safety=0.5):
+    """A b x h block centred on a fixed 4 m base, joint friction angle ``phi_deg``,
+    gravity at ``slope_deg`` from the base's normal (downhill = +x).  Returns
+    ``(state, params, config)`` with a safe time step."""
+    base = rectangle(-2.0, -1.0, 4.0, 1.0)
+    blocks = make_blocks([base, rectangle(-width / 2, 0.0, width, height)], density, fixed=[0])
+    state, config = make_state(blocks)
+    th = np.deg2rad(slope_deg)
+    p = make_params(kn=kn, friction=np.tan(np.deg2rad(phi_deg)), contact_damping=contact_damping,
+                    gravity=G * np.array([np.sin(th), -np.cos(th)]))
+    return state, p._replace(dt=jnp.asarray(recommended_timestep(blocks, p, safety))), config
+
+
+def stack(rects, *, kn=5e8, friction=0.6, contact_damping=0.2, local_damping=0.7,
+          density=2600.0):
+    """Blocks ``rects`` = [(x0, y0, width, height), ...] above a fixed 4 m base whose
+    top is y = 0.  Returns ``(state, params, config)`` (block 0 is the base)."""
+    polys = [rectangle(-2.0, -1.0, 4.0, 1.0)] + [rectangle(*r) for r in rects]
+    blocks = make_blocks(polys, density, fixed=[0])
+    state, config = make_state(blocks)
+    p = make_params(kn=kn, friction=friction, contact_damping=contact_damping,
+                    local_damping=local_damping)
+    return state, p._replace(dt=jnp.asarray(recommended_timestep(blocks, p))), config
+
+
+class Chain(NamedTuple):
+    """What a wave-across-a-joint row is made of (SI units).
+
+    joint      index of the last block left of the joint
+    mass       block mass per unit thickness [kg/m]
+    k_rock     spring of a glued rock face, both contact points together [N/m]
+    k_joint    spring of the face at the joint: rock and joint K = kappa h in
+               series, 1 / (1 / k_rock + 1 / K) [N/m]
+    dx         block width [m]
+    wave_speed sqrt(k_rock / mass) dx [m/s], the long-wave speed of the row
+    """
+
+    joint: int
+    mass: float
+    k_rock: float
+    k_joint: float
+    dx: float
+    wave_speed: float
+
+
+def joint_chain(n_blocks, *, dx=0.1, density=2650.0, modulus=26.67e9, joint_stiffness=1e10,
+                wavelength=20, cycles=1.0, amplitude=1e-6, start=None, safety=0.2):
+    """A row of ``n_blocks`` square blocks (edge ``dx``) glued face to face, with
+    a joint of specific stiffness ``joint_stiffness`` [Pa/m] between blocks
+    n/2 - 1 and n/2, and a right-going Gaussian tone burst of ``wavelength``
+    blocks, ``cycles`` periods of standard deviation, displacement ``amplitude``
+    [m], centred at block ``start`` (default n/4).  The rock is a P-wave medium
+    of modulus ``modulus`` [Pa] (000 §9.2.1 uses K = 16.667 GPa, G = 10 GPa:
+    K + 4 G / 3 = 30 GPa; the default 26.67 GPa is its E).
+
+    Returns ``(state, params, config, chain, omega)``: omega [rad/s] is the
+    burst's centre frequency.  Material 0 is the left rock, 1 the right; the
+    joint is the (0, 1) entry of the stiffness table.  No gravity, no damping;
+    the faces are glued with strengths far above the wave's forces, so each
+    acts as a linear spring both ways.
+    """
+    h = dx
+    xs = np.arange(n_blocks) * dx
+    polys = [rectangle(x, 0.0, dx, h) for x in xs]
+    mat = (np.arange(n_blocks) >= n_blocks // 2).astype(np.int32)
+    blocks = make_blocks(polys, density, material=mat)
+    k_rock = modulus * h / dx                    # E A / L per unit thickness
+    # the face between the two blocks is a block width of rock plus the joint:
+    # their compliances add
+    k_joint = 1.0 / (1.0 / k_rock + 1.0 / (joint_stiffness * h))
+    kn = np.array([[k_rock, k_joint], [k_joint, k_rock]]) / 2.0     # two points per face
+    strong = 1e6 * k_rock * amplitude
+    p = make_params(kn=kn, ks=kn, friction=0.0, cohesion=strong, tension=strong,
+                    gravity=(0.0, 0.0))
+    mass = float(blocks.mass[0])
+    speed = np.sqrt(k_rock / mass) * dx
+    # the burst: u(x) = A exp(-(x - x0)^2 / 2 s^2) cos(q (x - x0)), v = -c du/dx
+    centre = (n_blocks // 4 if start is None else start) * dx + dx / 2
+    q = 2 * np.pi / (wavelength * dx)
+    sigma = cycles * wavelength * dx
+    xc = np.asarray(blocks.pos[:, 0]) - centre
+    env = amplitude * np.exp(-0.5 * (xc / sigma) ** 2)
+    u = env * np.cos(q * xc)
+    du = env * (-xc / sigma ** 2 * np.cos(q * xc) - q * np.sin(q * xc))
+    # exact lattice frequency of wavenumber q, so the burst travels right only
+    omega = 2 * np.sqrt(k_rock / mass) * np.sin(q * dx / 2)
+    v = -du * (omega / q)
+    blocks = blocks._replace(pos=blocks.pos.at[:, 0].add(jnp.asarray(u)),
+                             vel=blocks.vel.at[:, 0].set(jnp.asarray(v)))
+    state, config = make_state(blocks, skin=0.2 * dx)
+    state = glue_joints(state, p, config, tolerance=10 * amplitude)
+    p = p._replace(dt=jnp.asarray(recommended_timestep(blocks, p, safety)))
+    chain = Chain(joint=n_blocks // 2 - 1, mass=mass, k_rock=k_rock, k_joint=k_joint, dx=dx,
+                  wave_speed=float(speed))
+    return state, p, config, chain, float(omega)
+
+
+def lattice_transmission(omega, mass, k_rock, k_joint):
+    """Exact transmission and reflection amplitudes (complex, displacement) of a
+    harmonic wave of frequency ``omega`` [rad/s] through one spring ``k_joint``
+    in an infinite row of masses ``mass`` joined by springs ``k_rock``.
+
+    With u_n = e^{iqn} + r e^{-iqn} left of the joint and t e^{iqn} right of it
+    (omega^2 m = 2 k (1 - cos q)), the two end masses' equations give
+    K (t e^{iq} - 1 - r) = k (e^{iq} + r e^{-iq} - 1 - r) and
+    K (1 + r - t e^{iq}) = k (t - t e^{iq}).  Returns ``(t, r)``.
+    """
+    omega = np.atleast_1d(np.asarray(omega, dtype=np.float64))
+    q = np.arccos(1.0 - mass * omega ** 2 / (2.0 * k_rock))
+    k, kj = k_rock, k_joint
+    out_t, out_r = [], []
+    for e in np.exp(1j * q):
+        # unknowns (r, t), the two equations above rearranged
+        a = np.array([[k - kj - k / e, kj * e], [kj, k * e - k - kj * e]])
+        r, t = np.linalg.solve(a, np.array([kj + k * e - k, -kj]))
+        out_t.append(t)
+        out_r.append(r)
+    return np.array(out_t), np.array(out_r)
+
+
+def continuum_transmission(omega, impedance, k_joint):
+    """|T| and |R| of a linear joint of stiffness K between two like half-spaces
+    of impedance Z (force per velocity): T = 1 / sqrt(1 + (omega Z / 2K)^2)."""
+    x = np.asarray(omega) * impedance / (2.0 * k_joint)
+    return 1.0 / np.sqrt(1.0 + x * x), x / np.sqrt(1.0 + x * x)
+
+
+def monitor_velocities(state, params, *, blocks):
+    """observe function for :func:`jdem.blocks.cycle.rollout`: the x velocity of
+    the given blocks (a tuple of indices, bound with functools.partial)."""
+    return dict(vx=state.blocks.vel[jnp.asarray(blocks), 0], step=state.step)
+
+
+def wave_across_joint(stiffness_ratio, *, n_blocks=600, wavelength=20, monitor_offset=80):
+    """Transmission and reflection coefficients of a joint, measured as 000
+    §9.2.1 does (eq 9-2, 9-3, 9-6: T = (E_T / E_I)^(1/2), R = (E_R / E_I)^(1/2),
+    E = rho c int v^2 dt at a point before and a point after the joint), for a
+    joint K = omega Z / (2 ``stiffness_ratio``) (so the continuum |T| is
+    (1 + stiffness_ratio^2)^(-1/2)).
+
+    The incident burst and its reflection pass the monitor left of the joint at
+    different times and are split there; the expected values weight the exact
+    lattice |t(omega)|^2, |r(omega)|^2 with the recorded incident spectrum.
+    Returns a dict of measured ``T``, ``R``, expected ``T_lattice``,
+    ``R_lattice``, the continuum ``T_continuum``, ``R_continuum`` at the centre
+    frequency, the absorption ``A`` of eq 9-1 (0 for an elastic joint) and the
+    histories.
+    """
+    import functools
+
+    from jdem.blocks.cycle import rollout
+
+    state, p, config, chain, omega = joint_chain(n_blocks, wavelength=wavelength)
+    impedance = np.sqrt(chain.k_rock * chain.mass)          # rho c h of the row [N s/m]
+    joint_k = omega * impedance / (2.0 * stiffness_ratio)     # K = kappa h [N/m]
+    state, p, config, chain, omega = joint_chain(n_blocks, wavelength=wavelength,
+                                                 joint_stiffness=joint_k / chain.dx)
+    left, right = chain.joint - monitor_offset + 1, chain.joint + monitor_offset
+    observe = functools.partial(monitor_velocities, blocks=(left, right))
+    start = n_blocks // 4
+    transit = chain.dx / chain.wave_speed                   # one block [s]
+    reach = 3.5 * wavelength                                # burst half-length [blocks]
+    t_end = (right - start + reach) * transit
+    n_steps = int(np.ceil(t_end / float(p.dt)))
+    _, hist = rollout(state, p, config, n_steps, 1, observe)
+    v = np.asarray(hist["vx"])
+    t = np.asarray(hist["step"]) * float(p.dt)
+    # the reflection's front reaches the left monitor after travelling to the joint and back
+    split = (chain.joint - start + (chain.joint - left) - reach) * transit
+    inc = t < split
+    e_i = np.sum(v[inc, 0] ** 2)
+    e_r = np.sum(v[~inc, 0] ** 2)
+    e_t = np.sum(v[:, 1] ** 2)
+    spec = np.abs(np.fft.rfft(np.where(inc, v[:, 0], 0.0))) ** 2
+    w = 2 * np.pi * np.fft.rfftfreq(len(t), float(p.dt))
+    band = (w > 0) & (w < 0.999 * 2.0 * np.sqrt(chain.k_rock / chain.mass))  # below cut-off
+    tt, rr = lattice_transmission(w[band], chain.mass, chain.k_rock, chain.k_joint)
+    total = np.sum(spec)
+    t_c, r_c = continuum_transmission(omega, impedance, joint_k)
+    tm, rm = np.sqrt(e_t / e_i), np.sqrt(e_r / e_i)
+    return dict(T=float(tm), R=float(rm), A=float(np.sqrt(max(0.0, 1 - tm ** 2 - rm ** 2))),
+                T_lattice=float(np.sqrt(np.sum(np.abs(tt) ** 2 * spec[band]) / total)),
+                R_lattice=float(np.sqrt(np.sum(np.abs(rr) ** 2 * spec[band]) / total)),
+                T_continuum=float(t_c), R_continuum=float(r_c), omega=omega,
+                joint_stiffness=float(joint_k / chain.dx), time=t, v_left=v[:, 0], v_right=v[:, 1],
+                split=float(split))
