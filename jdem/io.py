@@ -203,9 +203,15 @@ def _read_array(ds: h5py.Dataset):
 
 
 def _class_of(group: h5py.Group, default: str, where: str, path) -> type:
-    """The ``jdem.state`` class named by the group's ``_class`` attr (else ``default``)."""
+    """The class named by the group's ``_class`` attr (else ``default``): a
+    container of ``jdem.state`` or of ``jdem.blocks`` (block states and params
+    are saved and restarted the same way)."""
     name = _to_py(group.attrs.get("_class", default))
     cls = getattr(_state_mod, str(name), None)
+    if cls is None:
+        import jdem.blocks as _blocks_mod
+
+        cls = getattr(_blocks_mod, str(name), None)
     if not isinstance(cls, type):
         raise CorruptFileError(f"{where}: unknown class {name!r} in {path}")
     return cls

@@ -1,5 +1,6 @@
 """Rigid blocks (000 ch. 2, 3): geometry, detection, joint laws and the book's
 verification cases against analytic values, in float64."""
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -297,3 +298,75 @@ def test_friction_and_stiffness_recovered_from_a_sliding_history():
                              options=dict(jac="fwd"), max_steps=30, throw=False)
     got = np.exp(np.asarray(sol.value))
     np.testing.assert_allclose(got, [1.0, 1.0], rtol=1e-3)
+
+
+# ----------------------------------------------------------------------------- generation, files
+def test_joint_sets_cut_a_region_into_convex_blocks():
+    """Two persistent sets (dip 0 at 0.5 m, dip 90 at 0.4 m) cut a 2 x 1 m
+    region into 5 x 2 blocks whose areas sum to the region's; an inclined set
+    keeps the total area and every block convex (make_blocks checks)."""
+    region = bk.rectangle(0.0, 0.0, 2.0, 1.0)
+    polys = bk.cut_region(region, [bk.JointSet(0.0, 0.5), bk.JointSet(90.0, 0.4)])
+    assert len(polys) == 10
+    areas = [bk.polygon_properties(p)[0] for p in polys]
+    np.testing.assert_allclose(areas, 0.2, rtol=1e-12)
+    polys = bk.cut_region(region, [bk.JointSet(35.0, 0.3, 0.1), bk.JointSet(110.0, 0.45)])
+    assert sum(bk.polygon_properties(p)[0] for p in polys) == pytest.approx(2.0, rel=1e-12)
+    blocks = bk.make_blocks(polys, 2600.0)
+    assert int(jnp.sum(blocks.valid)) == len(polys)
+    with pytest.raises(InputError, match="spacing"):
+        bk.cut_region(region, [bk.JointSet(0.0, 0.0)])
+    with pytest.raises(InputError, match="persistence"):
+        bk.cut_region(region, [bk.JointSet(0.0, 0.5, persistence=1.5)])
+
+
+def test_rock_bridges_of_a_non_persistent_set_hold_their_blocks():
+    """A horizontal set of persistence 0.5 (joint pieces 0.5 m, bridges 0.5 m)
+    under a fixed top row: the blocks hanging from bridges stay (glued with
+    tension), those under joint pieces fall."""
+    region = bk.rectangle(0.0, 0.0, 2.0, 1.0)
+    sets = [bk.JointSet(0.0, 0.5, persistence=0.5, trace_length=0.5), bk.JointSet(90.0, 0.5)]
+    polys = bk.cut_region(region, sets)
+    centres = np.array([bk.polygon_properties(p)[1] for p in polys])
+    top = centres[:, 1] > 0.5
+    blocks = bk.make_blocks(polys, 2600.0, fixed=np.flatnonzero(top))
+    state, config = bk.make_state(blocks)
+    weight = float(blocks.mass[0]) * G
+    p = bk.make_params(kn=1e9, friction=0.0, tension=weight, contact_damping=0.5)
+    p = p._replace(dt=jnp.asarray(bk.recommended_timestep(blocks, p)))
+    state = bk.glue_joints(state, p, config, where=lambda pt, n: bk.bridge_mask(pt, n, sets))
+    _, hist = bk.run(state, p, config, 6000, record_every=500, progress=False)
+    drop = hist["pos"][0, :, 1] - hist["pos"][-1, :, 1]
+    bottom = ~top
+    on_bridge = bottom & (np.mod(centres[:, 0], 1.0) > 0.5)
+    assert np.all(drop[on_bridge] < 1e-4) and np.all(drop[bottom & ~on_bridge] > 0.02)
+
+
+def test_block_file_round_trip_and_errors(tmp_path):
+    polys = bk.cut_region(bk.rectangle(0.0, 0.0, 1.0, 1.0), [bk.JointSet(30.0, 0.3)])
+    bk.write_polygons(tmp_path / "b.txt", polys)
+    back = bk.read_polygons(tmp_path / "b.txt")
+    assert len(back) == len(polys)
+    for a, b in zip(polys, back):
+        np.testing.assert_array_equal(a, b)
+    (tmp_path / "bad.txt").write_text("# blocks\n0,0 1,0 1,1\n0,0 1;0 1,1\n")
+    with pytest.raises(InputError, match="bad.txt:3"):
+        bk.read_polygons(tmp_path / "bad.txt")
+    with pytest.raises(InputError, match="does not exist"):
+        bk.read_polygons(tmp_path / "none.txt")
+
+
+def test_block_run_restarts_bit_for_bit_from_hdf5(tmp_path):
+    """Save a sliding block's state and params half-way (jdem.io), reload, go on:
+    the same final state as one uninterrupted run, bit for bit."""
+    from jdem import io
+
+    state, p, config = _incline(0.5, 0.5, 35.0, 30.0)
+    whole, _ = bk.rollout(state, p, config, 4, 100)
+    half, _ = bk.rollout(state, p, config, 2, 100)
+    io.save_run(tmp_path / "half.h5", state=half, params=p, config=config)
+    back = io.load_run(tmp_path / "half.h5")
+    assert type(back.state).__name__ == "BlockState" and back.config == config
+    again, _ = bk.rollout(back.state, back.params, back.config, 2, 100)
+    for a, b in zip(jax.tree_util.tree_leaves(whole), jax.tree_util.tree_leaves(again)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -259,13 +259,20 @@ def step(state: BlockState, params: BlockParams, config: Config) -> BlockState:
 
 
 def glue_joints(state: BlockState, params: BlockParams, config: Config,
-                tolerance=0.0) -> BlockState:
+                tolerance=0.0, where=None) -> BlockState:
     """Mark every contact point that exists now with a gap below ``tolerance``
     [m] as intact: the joints between these blocks get ``cohesion`` and
-    ``tension`` (:mod:`jdem.blocks.joint`)."""
+    ``tension`` (:mod:`jdem.blocks.joint`).
+
+    where  optional ``where(points (C, 2, 2), normals (C, 2)) -> (C, 2) bool``
+           (NumPy) choosing the points to glue, e.g. the rock bridges of a
+           non-persistent joint set (:func:`jdem.blocks.generate.bridge_mask`)
+    """
     c = neighbors.build(state.contacts, detect.bounding_circles(state.blocks), config)
     g = detect.pair_geometry(state.blocks, c.i, c.j)
     glued = c.valid[:, None] & g.exists & (g.separation <= tolerance)
+    if where is not None:
+        glued = glued & jnp.asarray(where(np.asarray(g.point), np.asarray(g.normal)))
     hist = c.shear.at[:, 2:].set(glued.astype(c.shear.dtype))
     return state._replace(contacts=c._replace(shear=hist))
 
