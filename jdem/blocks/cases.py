@@ -4,7 +4,8 @@ and the experiments (000 §2.2, §3.4, §9.2.1).
 Citations ("000 eq 9-3") refer to the documents listed in REFERENCES.md.
 
 * :func:`incline`: a block on a fixed base under gravity tilted by the slope
-  (the same as a tilted base): sliding, toppling, both or neither.
+  (the same as a tilted base): sliding, toppling, both or neither
+  (:func:`onset_regime` from rigid-body dynamics, :func:`observed_regime` of a run).
 * :func:`stack`: blocks stacked on a fixed base, to be damped to rest.
 * :func:`joint_chain`: a wave across a joint (000 §9.2.1, eq 9-1..9-6) in its
   one-dimensional form: a row of square blocks glued face to face (the intact
@@ -40,6 +41,55 @@ def incline(width, height, slope_deg, phi_deg, *, kn=1e9, contact_damping=0.3, d
     p = make_params(kn=kn, friction=np.tan(np.deg2rad(phi_deg)), contact_damping=contact_damping,
                     gravity=G * np.array([np.sin(th), -np.cos(th)]))
     return state, p._replace(dt=jnp.asarray(recommended_timestep(blocks, p, safety))), config
+
+
+def onset_regime(width, height, slope_deg, phi_deg):
+    """What a block (b x h) on an incline does first, from rigid-body dynamics
+    at rest: the one mode whose contact force is consistent.
+
+    * stays: tan theta <= b / h (the weight's line inside the base) and theta <= phi;
+    * topples: it turns about its downhill corner with alpha = M / I_pivot,
+      I_pivot = m (b^2 + h^2) / 3, and the corner holds: the force it needs,
+      F = m (a_centroid - g), is inside the friction cone |F_t| <= mu F_n;
+    * slides: theta > phi and the sliding contact force (inclined at phi to the
+      normal) passes through the base, mu <= b / h, so it does not turn;
+    * both, otherwise.
+
+    The static chart (slides iff theta > phi, topples iff tan theta > b / h)
+    differs in its "slides and topples" region: there a block may only topple
+    (the turning block's own acceleration unloads the friction) or only slide."""
+    th, mu = np.deg2rad(slope_deg), np.tan(np.deg2rad(phi_deg))
+    if np.tan(th) <= width / height and slope_deg <= phi_deg:
+        return "stable"
+    if np.tan(th) > width / height:
+        alpha = G * (width / 2 * np.cos(th) - height / 2 * np.sin(th)) / \
+            ((width ** 2 + height ** 2) / 3)
+        f_t = alpha * (-height / 2) - G * np.sin(th)        # per unit mass
+        f_n = alpha * (-width / 2) + G * np.cos(th)
+        if abs(f_t) <= mu * f_n:
+            return "topples"
+    if slope_deg > phi_deg and mu <= width / height:
+        return "slides"
+    return "both"
+
+
+def observed_regime(history, width, height, *, turn=0.05, slip=1e-3):
+    """What a run of :func:`incline` did first: "stable", "topples", "slides" or
+    "both" (``history`` from :func:`jdem.blocks.cycle.run`).
+
+    The block turned if its angle exceeds ``turn`` [rad]; it slid if its
+    downhill base corner (the pivot of a toppling block) has moved more than
+    ``slip`` [m] by the record where it first turned that far (by the last
+    record if it never did).  Judged there, near the onset, because a toppling
+    block's friction demand changes as it turns (a pivot that holds at first
+    may slip later)."""
+    a = np.asarray(history["angle"][:, 1])
+    corner = np.asarray(history["pos"][:, 1, 0]) + width / 2 * np.cos(a) + height / 2 * np.sin(a)
+    over = np.flatnonzero(np.abs(a) > turn)
+    k = int(over[0]) if over.size else len(a) - 1
+    turned, slid = bool(over.size), bool(corner[k] - width / 2 > slip)
+    return {(False, False): "stable", (True, False): "topples", (False, True): "slides",
+            (True, True): "both"}[(turned, slid)]
 
 
 def stack(rects, *, kn=5e8, friction=0.6, contact_damping=0.2, local_damping=0.7,
