@@ -160,9 +160,13 @@ def main(argv=None):
     fig.tight_layout()
     fig.savefig(out / "incline_acceleration.png", dpi=120)
 
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+
+    cmap = ListedColormap(["#cccccc", "#66c2a5", "#fc8d62", "#8da0cb"])   # one colour per regime
+    norm = BoundaryNorm([-0.5, 0.5, 1.5, 2.5, 3.5], cmap.N)
     fig, axs = plt.subplots(1, 2, figsize=(9, 3.8), sharey=True)
     for ax, grid, title in ((axs[0], sim, "simulated"), (axs[1], theory, "onset dynamics")):
-        im = ax.pcolormesh(rslopes, ratios, grid, vmin=-0.5, vmax=3.5, cmap="Set2", shading="nearest")
+        im = ax.pcolormesh(rslopes, ratios, grid, cmap=cmap, norm=norm, shading="nearest")
         ax.axvline(PHI, color="k", lw=1)
         ax.plot(rslopes, np.tan(np.deg2rad(rslopes)), "k--", lw=1)
         ax.set(xlabel="slope θ [deg]", title=title, ylim=(ratios.min(), ratios.max()))

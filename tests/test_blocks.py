@@ -350,3 +350,34 @@ def test_readme_block_example_runs_and_settles():
     _, force, _, _ = bk.contact_forces(state, params)
     weight = float(jnp.sum(blocks.mass[1:])) * G
     assert -float(force[0, 1]) == pytest.approx(weight, rel=2e-2)
+
+
+def test_rough_joint_holds_a_block_a_smooth_one_lets_slide():
+    """Barton's joint (000 eq 3-43) in the contact law: a flat block (b / h = 10,
+    so the two points carry nearly equal loads) on a joint with phi_b = 25
+    degrees, JRC 10 and JCS chosen so that the Barton angle at its normal stress
+    is theta* (solved below, ~35 degrees): it stays 2 degrees below theta* and
+    slides 2 degrees above it; without roughness it slides at both slopes."""
+    width, height, phi_b, jrc = 1.0, 0.1, 25.0, 10.0
+    mass = 2500.0 * width * height
+    jcs = 1.2e5
+
+    def barton(theta):        # the joint's angle at the block's normal stress [deg]
+        sigma = mass * G * np.cos(np.deg2rad(theta)) / width
+        return phi_b + jrc * np.log10(jcs / sigma)
+
+    lo, hi = 20.0, 60.0
+    for _ in range(60):       # theta* = barton(theta*)
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if barton(mid) > mid else (lo, mid)
+    star = 0.5 * (lo + hi)
+    assert 30.0 < star < 45.0
+    for slope, rough_slides in ((star - 2.0, False), (star + 2.0, True)):
+        for rough in (True, False):
+            state, p, config = _incline(width, height, slope, phi_b)
+            if rough:
+                p = p._replace(jrc=jnp.full((1, 1), jrc), jcs=jnp.full((1, 1), jcs))
+            _, hist = bk.run(state, p, config, int(0.3 / float(p.dt)), record_every=100,
+                             progress=False)
+            slid = float(hist["pos"][-1, 1, 0]) > 1e-3
+            assert slid == (rough_slides if rough else True), (slope, rough)

@@ -59,6 +59,11 @@ class BlockParams(NamedTuple):
     friction         (M, M) mu = tan(phi) of the joints [-]
     cohesion         (M, M) shear strength of an intact point at zero normal force [N]
     tension          (M, M) tensile strength of an intact point [N]
+    jrc, jcs         (M, M) Barton's joint roughness coefficient [-] and joint wall
+                     compressive strength [Pa] (000 eq 3-43): where jrc > 0 the
+                     friction angle of a point is atan(friction) + JRC log10(JCS /
+                     sigma_n), sigma_n its normal force over its share of the
+                     contact length (half the clipped face, unit thickness)
     contact_damping  ratio of critical damping of the normal and shear dashpots [-]
     local_damping    alpha of 000 eq 3-19 [-], 0 <= alpha < 1
     viscous_damping  mass-proportional damping c [1/s] (000 eq 3-9)
@@ -71,28 +76,32 @@ class BlockParams(NamedTuple):
     friction: jnp.ndarray
     cohesion: jnp.ndarray
     tension: jnp.ndarray
+    jrc: jnp.ndarray
+    jcs: jnp.ndarray
     contact_damping: jnp.ndarray
     local_damping: jnp.ndarray
     viscous_damping: jnp.ndarray
     gravity: jnp.ndarray
 
 
-JOINT_TABLE = ("kn", "ks", "friction", "cohesion", "tension")
+JOINT_TABLE = ("kn", "ks", "friction", "cohesion", "tension", "jrc", "jcs")
 
 
-def make_params(*, kn, ks=None, friction=0.5, cohesion=0.0, tension=0.0, contact_damping=0.0,
+def make_params(*, kn, ks=None, friction=0.5, cohesion=0.0, tension=0.0, jrc=0.0, jcs=1e8,
+                contact_damping=0.0,
                 local_damping=0.0, viscous_damping=0.0, gravity=(0.0, -9.81), dt=None,
                 dtype=None) -> BlockParams:
     """Block parameters with checks.
 
     The joint properties (``kn``, ``ks``, ``friction``, ``cohesion``,
-    ``tension``) are numbers (one kind of joint) or symmetric (M, M) tables over
+    ``tension``, ``jrc``, ``jcs``) are numbers (one kind of joint) or symmetric (M, M) tables over
     the block materials (:class:`BlockParams`).  ``ks`` defaults to
     kn / (2 (1 + 0.25)) (000 eq 3-33 with nu = 0.25); ``dt`` to NaN (set it
     with :func:`recommended_timestep` before running).
     """
     ks = np.asarray(kn, dtype=np.float64) / 2.5 if ks is None else ks
-    table = dict(kn=kn, ks=ks, friction=friction, cohesion=cohesion, tension=tension)
+    table = dict(kn=kn, ks=ks, friction=friction, cohesion=cohesion, tension=tension, jrc=jrc,
+                 jcs=jcs)
     arrays = {k: np.asarray(v, dtype=np.float64) for k, v in table.items()}
     # the table size comes from kn if it is a table, else from the first table given
     m = next((a.shape[0] for a in arrays.values() if a.ndim == 2), 1)
@@ -107,6 +116,8 @@ def make_params(*, kn, ks=None, friction=0.5, cohesion=0.0, tension=0.0, contact
         if not np.all(np.isfinite(a)) or np.any(a < 0):
             raise InputError(f"block parameter {name} must be finite and >= 0, got {a.tolist()}")
         arrays[name] = a
+    if np.any(arrays["jcs"] <= 0):
+        raise InputError(f"block parameter jcs must be > 0, got {arrays['jcs'].tolist()}")
     if np.any(arrays["kn"] <= 0):
         raise InputError(f"block parameter kn must be > 0, got {arrays['kn'].tolist()}")
     scalars = dict(contact_damping=contact_damping, local_damping=local_damping,
@@ -207,7 +218,14 @@ def contact_forces(state: BlockState, params: BlockParams):
     vt = jnp.sum(v_rel * t, axis=-1)
     overlap = -g.separation
     ma, mb = b.material[c.i], b.material[c.j]
-    kn, ks, mu, coh, ten = (getattr(params, name)[ma, mb][:, None] for name in JOINT_TABLE)
+    kn, ks, mu, coh, ten, jrc, jcs = (getattr(params, name)[ma, mb][:, None]
+                                      for name in JOINT_TABLE)
+    # Barton's rough joint (000 eq 3-43) where jrc > 0: the friction angle rises as
+    # the point's normal stress falls; the stress from the elastic normal force
+    share = jnp.maximum(0.5 * g.length, 1e-6 * (b.radius[c.i] + b.radius[c.j]))[:, None]
+    sigma_n = jnp.maximum(kn * overlap, 0.0) / share
+    rough = joint.barton_friction(sigma_n, jnp.arctan(mu), jrc, jcs)
+    mu = jnp.where(jrc > 0, rough, mu)
     fn, fs, intact, sliding = joint.coulomb_point(
         overlap, vt * params.dt, shear_old, intact_old & active, kn, ks, mu, coh, ten)
     # dashpots (000 eq 2-12 as a fraction of critical); reduced mass, a fixed

@@ -21,7 +21,8 @@ force.
 
 Barton's rough-joint friction (000 eq 3-43, with the log10 of the Barton–Choubey
 form): phi = phi_b + JRC log10(JCS / sigma_n); :func:`barton_friction`
-returns tan(phi) for a normal stress, to be used as ``mu`` point by point.
+returns tan(phi) for a normal stress; the contact law uses it point by point
+where the joint's ``jrc`` > 0 (:class:`jdem.blocks.cycle.BlockParams`).
 """
 from __future__ import annotations
 
