@@ -185,6 +185,11 @@ def main(argv=None):
     ax.semilogx(x, [d["R_lattice"] for d in waves], "D", mfc="none", label="R block row (exact)")
     ax.semilogx(x, [d["T"] for d in waves], "o", label="T measured")
     ax.semilogx(x, [d["R"] for d in waves], "^", label="R measured")
+    from matplotlib.ticker import NullFormatter
+
+    ax.set_xticks(x)
+    ax.set_xticklabels([f"{r:g}" for r in x])
+    ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set(xlabel="ω Z / 2K", ylabel="coefficient", title="wave across a joint (000 §9.2.1)")
     ax.legend(fontsize=7)
     fig.tight_layout()
