@@ -397,3 +397,27 @@ def test_vmapped_rollout_over_friction_equals_single_runs():
     for k in range(3):
         np.testing.assert_allclose(batch[k], run_one(mus[k]), rtol=1e-12, atol=1e-15)
     assert float(batch[2, -1]) < 1e-4 < float(batch[0, -1])      # the 40-degree joint holds
+
+
+def test_diverging_block_run_stops_with_its_last_good_state():
+    """A block glued to its base (so that it cannot fly off) run at 30x the
+    critical step (the check bypassed: a user gets an InputError first) is
+    flung through its base at hundreds of m/s, far more than half the skin per
+    step: the run stops with SimulationDiverged carrying the finite state from
+    before, instead of letting it tunnel and fall."""
+    from unittest import mock
+
+    from jdem.simulate import SimulationDiverged
+
+    state, p, config = _incline(0.5, 0.5, 0.0, 30.0, zeta=0.0)
+    p = p._replace(tension=jnp.full((1, 1), 1e30), cohesion=jnp.full((1, 1), 1e30))
+    state = bk.glue_joints(state, p, config, tolerance=1e-9)
+    assert float(jnp.sum(state.contacts.shear[:, 2:])) == 2.0      # both points glued
+    fast = p._replace(dt=30.0 * p.dt)
+    with mock.patch.object(bk.cycle, "critical_timestep", lambda *a, **k: jnp.inf):
+        with pytest.raises(SimulationDiverged) as err:
+            bk.run(state, fast, config, 200_000, record_every=100, progress=False)
+    good = err.value.last_good_state
+    assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(good.blocks)
+               if jnp.issubdtype(x.dtype, jnp.floating))
+    assert err.value.step == int(good.step)

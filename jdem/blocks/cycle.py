@@ -38,6 +38,7 @@ from jdem import damping, neighbors
 from jdem.blocks import detect, joint
 from jdem.blocks.geometry import Blocks
 from jdem.kinematics import segment_add
+from jdem.simulate import SimulationDiverged
 from jdem.state import Config, Contacts
 from jdem.timestep import damped_limit
 from jdem.validate import InputError
@@ -350,8 +351,11 @@ def default_observe(state: BlockState, params: BlockParams) -> dict:
 def run(state: BlockState, params: BlockParams, config: Config, n_steps: int, *,
         record_every: int = 100, observe=None, progress=True):
     """Host loop over :func:`rollout` chunks: checks the time step first, grows
-    the pair list and re-runs a chunk when it overflowed, stops with the last
-    good state when the state turns non-finite, shows progress.
+    the pair list and re-runs a chunk when it overflowed, shows progress.  When
+    the state turns non-finite, or a block moves half the skin in one step (it
+    could pass through another before the pair list sees them), it raises
+    :class:`jdem.simulate.SimulationDiverged` carrying the last good state (the
+    start of the chunk) and the history so far.
 
     Returns ``(state, history as NumPy arrays)``.
     """
@@ -386,12 +390,19 @@ def run(state: BlockState, params: BlockParams, config: Config, n_steps: int, *,
                     state.contacts, detect.bounding_circles(state.blocks), config)
                 state = state._replace(contacts=contacts)
                 continue
-            if not all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(
-                    new.blocks) if jnp.issubdtype(x.dtype, jnp.floating)):
-                raise FloatingPointError(
-                    f"block run turned non-finite between steps {int(state.step)} and "
-                    f"{int(new.step)}; the last good state is at step {int(state.step)} "
-                    f"(lower dt or raise the damping)")
+            b = new.blocks
+            free = np.asarray(b.valid & ~b.fixed)
+            reach = np.asarray(jnp.sqrt(jnp.sum(b.vel ** 2, axis=1)) + jnp.abs(b.angvel) *
+                               b.radius) * dt
+            # a block that moves half the skin per step outruns the pair list: it can
+            # pass through another (tunnelling) before the list sees the pair
+            too_fast = bool(np.any(free & ~(reach < 0.5 * config.skin)))
+            if too_fast or not all(bool(jnp.all(jnp.isfinite(x))) for x in
+                                   jax.tree_util.tree_leaves(b)
+                                   if jnp.issubdtype(x.dtype, jnp.floating)):
+                history = {key: np.concatenate([r[key] for r in records])
+                           for key in records[0]} if records else {}
+                raise SimulationDiverged(int(state.step), state, history)
             state = new
             records.append(jax.tree_util.tree_map(np.asarray, hist))
             done += k
