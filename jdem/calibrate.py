@@ -156,6 +156,15 @@ def _residual_fn(u, args, *, names, lims, terms):
     return r, dict(overflowed=jnp.stack(over), ok=tuple(ok), loss=jnp.sum(r ** 2))
 
 
+def _problem(names, lims, terms, plist):
+    """``(fn, args)`` for the solvers: ``fn(u, args)`` is :func:`_residual_fn`
+    bound to the names, bounds and terms as a ``jax.tree_util.Partial`` (a
+    pytree, so the module-level jits of :func:`_compiled` see its arrays as
+    traced and reuse their compilation), ``args`` the (set-up, params) pairs."""
+    fn = jax.tree_util.Partial(_residual_fn, names=tuple(names), lims=lims, terms=tuple(terms))
+    return fn, tuple((t.setup, p) for t, p in zip(terms, plist))
+
+
 def calibration_loss(params: Params, setup, target, weights=LossWeights()):
     """Sum of squared residuals of ``params`` on one lab-test set-up against one
     target (the mean over an ensemble's members), and the pure run's history."""
@@ -361,8 +370,7 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
             bar.close()
     # uncertainty and curves at the best point
     ub = jnp.asarray([_to_internal(best[1][n], *lims[n]) for n in names])
-    fn = jax.tree_util.Partial(_residual_fn, names=tuple(names), lims=lims, terms=tuple(terms))
-    args = tuple((t.setup, p) for t, p in zip(terms, plist))
+    fn, args = _problem(names, lims, terms, plist)
     r, J = _jacobian(fn, ub, args, jacobian)
     std, intervals, corr, why = _uncertainty(J, r, np.asarray(ub), names, lims, n_data)
     curves1 = _curves(terms, plist, best[1])
@@ -456,8 +464,7 @@ def _least_squares(terms, plist, u, names, lims, record, history, steps, *, meth
     stall, last = 0, (min(history["loss"]) if history["loss"] else np.inf)
     k = 0
     while k < steps:
-        fn = jax.tree_util.Partial(_residual_fn, names=tuple(names), lims=lims, terms=tuple(terms))
-        args = tuple((t.setup, p) for t, p in zip(terms, plist))
+        fn, args = _problem(names, lims, terms, plist)
         f_struct, aux_struct = jax.eval_shape(fn, u, args)
         compiled = _compiled()
         # through the cached jit too: the state holds the linearised function as a
@@ -509,10 +516,8 @@ def _adam(terms, plist, u, names, lims, record, history, steps, *, jacobian, lea
     vg_fn = None
     while k < steps:
         if vg_fn is None:   # built again after the neighbour list grew
-            fn = jax.tree_util.Partial(_residual_fn, names=tuple(names), lims=lims,
-                                   terms=tuple(terms))
+            fn, args = _problem(names, lims, terms, plist)
             vg_fn = functools.partial(_compiled()["value_and_grad"], fn)
-        args = tuple((t.setup, p) for t, p in zip(terms, plist))
         loss, aux, g = vg_fn(u, args, jacobian)
         if bool(np.any(np.asarray(aux["overflowed"]))):
             terms = [t._replace(setup=lab.grow(t.setup)) if bool(o) else t
