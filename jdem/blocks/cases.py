@@ -124,6 +124,16 @@ class Chain(NamedTuple):
     wave_speed: float
 
 
+def row_wave(dx, density, modulus, wavelength):
+    """Block mass [kg/m], face spring k = E h / dx [N/m] and the exact frequency
+    omega = 2 sqrt(k / m) sin(q dx / 2) [rad/s] of a wave of ``wavelength``
+    blocks in a row of square blocks of edge ``dx`` (per unit thickness)."""
+    mass = density * dx * dx
+    k_rock = modulus                             # E h / dx with h = dx
+    q = 2 * np.pi / (wavelength * dx)
+    return mass, k_rock, 2 * np.sqrt(k_rock / mass) * np.sin(q * dx / 2)
+
+
 def joint_chain(n_blocks, *, dx=0.1, density=2650.0, modulus=26.67e9, joint_stiffness=1e10,
                 wavelength=20, cycles=1.0, amplitude=1e-6, start=None, safety=0.2):
     """A row of ``n_blocks`` square blocks (edge ``dx``) glued face to face, with
@@ -145,7 +155,7 @@ def joint_chain(n_blocks, *, dx=0.1, density=2650.0, modulus=26.67e9, joint_stif
     polys = [rectangle(x, 0.0, dx, h) for x in xs]
     mat = (np.arange(n_blocks) >= n_blocks // 2).astype(np.int32)
     blocks = make_blocks(polys, density, material=mat)
-    k_rock = modulus * h / dx                    # E A / L per unit thickness
+    _, k_rock, omega = row_wave(dx, density, modulus, wavelength)
     # the face between the two blocks is a block width of rock plus the joint:
     # their compliances add
     k_joint = 1.0 / (1.0 / k_rock + 1.0 / (joint_stiffness * h))
@@ -163,8 +173,7 @@ def joint_chain(n_blocks, *, dx=0.1, density=2650.0, modulus=26.67e9, joint_stif
     env = amplitude * np.exp(-0.5 * (xc / sigma) ** 2)
     u = env * np.cos(q * xc)
     du = env * (-xc / sigma ** 2 * np.cos(q * xc) - q * np.sin(q * xc))
-    # exact lattice frequency of wavenumber q, so the burst travels right only
-    omega = 2 * np.sqrt(k_rock / mass) * np.sin(q * dx / 2)
+    # omega is the row's exact frequency of wavenumber q, so the burst travels right only
     v = -du * (omega / q)
     blocks = blocks._replace(pos=blocks.pos.at[:, 0].add(jnp.asarray(u)),
                              vel=blocks.vel.at[:, 0].set(jnp.asarray(v)))
@@ -231,11 +240,13 @@ def wave_across_joint(stiffness_ratio, *, n_blocks=600, wavelength=20, monitor_o
 
     from jdem.blocks.cycle import rollout
 
-    state, p, config, chain, omega = joint_chain(n_blocks, wavelength=wavelength)
-    impedance = np.sqrt(chain.k_rock * chain.mass)          # rho c h of the row [N s/m]
+    dx, density, modulus = 0.1, 2650.0, 26.67e9              # joint_chain's defaults
+    mass, k_rock, omega = row_wave(dx, density, modulus, wavelength)
+    impedance = np.sqrt(k_rock * mass)                       # rho c h of the row [N s/m]
     joint_k = omega * impedance / (2.0 * stiffness_ratio)     # K = kappa h [N/m]
-    state, p, config, chain, omega = joint_chain(n_blocks, wavelength=wavelength,
-                                                 joint_stiffness=joint_k / chain.dx)
+    state, p, config, chain, omega = joint_chain(n_blocks, dx=dx, density=density,
+                                                 modulus=modulus, wavelength=wavelength,
+                                                 joint_stiffness=joint_k / dx)
     left, right = chain.joint - monitor_offset + 1, chain.joint + monitor_offset
     observe = functools.partial(monitor_velocities, blocks=(left, right))
     start = n_blocks // 4

@@ -37,7 +37,7 @@ import numpy as np
 from jdem import damping, neighbors
 from jdem.blocks import detect, joint
 from jdem.blocks.geometry import Blocks
-from jdem.kinematics import segment_add
+from jdem.kinematics import cross_r_f, cross_w_r, segment_add
 from jdem.simulate import SimulationDiverged
 from jdem.state import Config, Contacts
 from jdem.timestep import damped_limit
@@ -162,24 +162,13 @@ def make_state(blocks: Blocks, *, skin=None, capacity=None):
     origin, shape, cell = neighbors.grid_for(circles, skin=skin)
     config = Config(dim=2, skin=skin, cell_size=cell, grid_origin=origin, grid_shape=shape,
                     max_per_cell=8)
-    start = neighbors.empty(circles, 1)._replace(
-        shear=jnp.zeros((1, HISTORY), blocks.pos.dtype))
-    probe = neighbors.build(start, circles, config)
-    cap = max(int(capacity or 0), neighbors.room_for(int(probe.n_pairs)), 4 * int(rad.size))
+    # allocate sizes the list for the pairs it finds (at least ``cap`` rows); the
+    # empty list it starts from gives the history its (C, 4) shape
+    cap = max(int(capacity or 0), 4 * int(rad.size))
     empty = neighbors.empty(circles, cap)
     empty = empty._replace(shear=jnp.zeros((cap, HISTORY), blocks.pos.dtype))
     contacts, config = neighbors.allocate(circles, config, old=empty, min_capacity=cap)
     return BlockState(blocks=blocks, contacts=contacts, step=jnp.zeros((), jnp.int32)), config
-
-
-def _cross(r, f):
-    """z component of r x f for (..., 2) vectors."""
-    return r[..., 0] * f[..., 1] - r[..., 1] * f[..., 0]
-
-
-def _spin(w, r):
-    """w x r for a scalar spin w (...) and (..., 2) arms."""
-    return jnp.stack([-w * r[..., 1], w * r[..., 0]], axis=-1)
 
 
 class ContactForces(NamedTuple):
@@ -212,8 +201,8 @@ def contact_forces(state: BlockState, params: BlockParams):
     t = jnp.stack([-n[..., 1], n[..., 0]], axis=-1)
     ri = g.point - b.pos[c.i][:, None, :]
     rj = g.point - b.pos[c.j][:, None, :]
-    vi = b.vel[c.i][:, None, :] + _spin(b.angvel[c.i][:, None], ri)
-    vj = b.vel[c.j][:, None, :] + _spin(b.angvel[c.j][:, None], rj)
+    vi = b.vel[c.i][:, None, :] + cross_w_r(b.angvel[c.i][:, None], ri)
+    vj = b.vel[c.j][:, None, :] + cross_w_r(b.angvel[c.j][:, None], rj)
     v_rel = vj - vi                                        # 000 eq 2-9 as rates
     vn = jnp.sum(v_rel * n, axis=-1)                       # 000 eq 2-10
     vt = jnp.sum(v_rel * t, axis=-1)
@@ -245,10 +234,10 @@ def contact_forces(state: BlockState, params: BlockParams):
     intact = intact & active
     force_j = fn_total[..., None] * n + fs_total[..., None] * t     # (C, 2, 2)
     nb = b.pos.shape[0]
-    force = segment_add(jnp.sum(force_j, axis=1), c.j, nb) - \
-        segment_add(jnp.sum(force_j, axis=1), c.i, nb)
-    moment = segment_add(jnp.sum(_cross(rj, force_j), axis=1), c.j, nb) - \
-        segment_add(jnp.sum(_cross(ri, force_j), axis=1), c.i, nb)
+    pair_force = jnp.sum(force_j, axis=1)                               # (C, 2) on j
+    force = segment_add(pair_force, c.j, nb) - segment_add(pair_force, c.i, nb)
+    moment = segment_add(jnp.sum(cross_r_f(rj, force_j), axis=1), c.j, nb) - \
+        segment_add(jnp.sum(cross_r_f(ri, force_j), axis=1), c.i, nb)
     history = jnp.concatenate([fs, intact.astype(fs.dtype)], axis=1)
     contacts = c._replace(shear=jnp.where(c.valid[:, None], history, 0.0))
     info = ContactForces(normal=g.normal, point=g.point, fn=fn_total, fs=fs_total,
@@ -400,9 +389,7 @@ def run(state: BlockState, params: BlockParams, config: Config, n_steps: int, *,
             if too_fast or not all(bool(jnp.all(jnp.isfinite(x))) for x in
                                    jax.tree_util.tree_leaves(b)
                                    if jnp.issubdtype(x.dtype, jnp.floating)):
-                history = {key: np.concatenate([r[key] for r in records])
-                           for key in records[0]} if records else {}
-                raise SimulationDiverged(int(state.step), state, history)
+                raise SimulationDiverged(int(state.step), state, _stack(records))
             state = new
             records.append(jax.tree_util.tree_map(np.asarray, hist))
             done += k
@@ -411,6 +398,12 @@ def run(state: BlockState, params: BlockParams, config: Config, n_steps: int, *,
     finally:
         if bar is not None:
             bar.close()
-    history = {key: np.concatenate([r[key] for r in records]) for key in records[0]}
+    history = _stack(records)
     history["wall_time"] = time.time() - t0
     return state, history
+
+
+def _stack(records):
+    """One history dict from the chunks' records (``{}`` if there are none)."""
+    return {key: np.concatenate([r[key] for r in records]) for key in records[0]} \
+        if records else {}

@@ -20,6 +20,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jdem.blocks.geometry import signed_area
 from jdem.validate import InputError
 
 
@@ -81,13 +82,9 @@ def split_polygon(poly, normal, c, *, min_area=1e-12):
             x = a + (b - a) * (sa / (sa - sb))
             below.append(x)
             above.append(x)
-    area = _area(p)
-    return [np.array(q) for q in (below, above) if len(q) >= 3 and _area(q) > min_area * area]
-
-
-def _area(poly):
-    q = np.asarray(poly)
-    return 0.5 * abs(np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1]))
+    area = abs(signed_area(p))
+    return [np.array(q) for q in (below, above)
+            if len(q) >= 3 and abs(signed_area(q)) > min_area * area]
 
 
 def cut_region(region, joint_sets) -> list:

@@ -62,6 +62,14 @@ class Blocks(NamedTuple):
     valid: Array
 
 
+def signed_area(vertices):
+    """Signed area [m^2] of a polygon (n, 2) (NumPy, shoelace): positive when the
+    vertices run counter-clockwise."""
+    v = np.asarray(vertices, dtype=np.float64)
+    x, y = v[:, 0], v[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
 def polygon_properties(vertices):
     """Area [m^2], centroid (2,) [m] and polar second moment of area about the
     centroid [m^4] of a simple polygon (NumPy; shoelace formulae).
@@ -137,8 +145,7 @@ def make_blocks(polygons, density, *, fixed=None, vel=None, angvel=None, materia
             raise InputError(f"polygon {k} has {p.shape[0]} vertices, above "
                              f"max_vertices={nv}")
         area, c, polar = polygon_properties(p)
-        signed = np.sum(p[:, 0] * np.roll(p[:, 1], -1) - np.roll(p[:, 0], -1) * p[:, 1])
-        local = (p if signed > 0 else p[::-1]) - c
+        local = (p if signed_area(p) > 0 else p[::-1]) - c
         _check_convex(local, k)
         m = local.shape[0]
         verts[k, :m] = local
