@@ -38,7 +38,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jdem.io  # noqa: E402
-from jdem import absorbing as ab  # noqa: E402
+from jdem import waves  # noqa: E402
 
 
 def main(argv=None):
@@ -52,8 +52,8 @@ def main(argv=None):
     runs = {}
     for kind, size in (("fixed", extended), ("viscous", 100.0), ("viscoelastic", 100.0)):
         t0 = time.perf_counter()
-        model = ab.lamb_model(size, radius, boundary=kind, t_end=t_end)
-        runs[kind] = ab.run_lamb(model)
+        model = waves.lamb_model(size, radius, boundary=kind, t_end=t_end)
+        runs[kind] = waves.run_lamb(model)
         n = int(np.sum(np.asarray(model.state.particles.valid)))
         runs[kind]["wall"] = time.perf_counter() - t0
         print(f"  {kind:12s} {size:5.0f} m: {n} discs, {model.n_steps} steps, "

@@ -24,7 +24,7 @@ left end; the coda is the same measure stopped before a reflection from the
 right end can arrive (what the random packing scatters by itself).
 
 Reflection against a reference (the measure the tests use): the bar is cut
-from a 1800 m packing (jdem.absorbing.bar_pair; Pattern B: the cut face is
+from a 1800 m packing (jdem.waves.bar_pair; Pattern B: the cut face is
 ragged) and the reflected amplitude at P3 is max |v_truncated - v_reference|
 over the record 2 L / c_P + T, over the incident peak; the packing's own
 scattering is the same in both and cancels.  Reported for Pattern A (beta = 1,
@@ -51,7 +51,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jdem.io  # noqa: E402
-from jdem import absorbing as ab  # noqa: E402
+from jdem import waves  # noqa: E402
 
 L, H, RHO, CP = 1000.0, 50.0, 2500.0, 1000.0
 
@@ -59,7 +59,7 @@ L, H, RHO, CP = 1000.0, 50.0, 2500.0, 1000.0
 def coda(h, model):
     """Largest |v_x| at P3 after the incident pulse and before a reflection from
     the right end can arrive there, over the incident peak."""
-    r = ab.reflection(h, model)
+    r = waves.reflection(h, model)
     t, v = h["time"], h["vel"][:, 2, 0]
     tp = r["window"][0] - 0.6 * model.duration
     win = (t >= r["window"][0]) & (t <= tp + model.length / r["speed"] - 0.5 * model.duration)
@@ -79,52 +79,52 @@ def main(argv=None):
     hist, attrs = {}, dict(r_regular=r_reg, r_min_random=r_min)
 
     # --- Pattern A, beta = 1
-    pos, rad = ab.square_packing(int(L / (2 * r_reg)), int(H / (2 * r_reg)), r_reg)
-    reg = ab.bar_model(*ab.lattice(pos, rad, ab.square_density(RHO)), length=L, height=H,
+    pos, rad = waves.square_packing(int(L / (2 * r_reg)), int(H / (2 * r_reg)), r_reg)
+    reg = waves.bar_model(*waves.lattice(pos, rad, waves.square_density(RHO)), length=L, height=H,
                        dt_factor=0.9)
-    h_reg = ab.run_bar(reg)
-    refl = ab.reflection(h_reg, reg)
+    h_reg = waves.run_bar(reg)
+    refl = waves.reflection(h_reg, reg)
     print(f"Pattern A ({len(rad)} discs), beta = 1: incident {refl['incident']:.4f} m/s, "
           f"reflected {refl['reflected']:.5f} m/s = {refl['ratio']:.2%}")
     attrs.update(regular_reflection=refl["ratio"], regular_n=len(rad))
     hist.update(regular_time=h_reg["time"], regular_vel=h_reg["vel"][:, :, 0])
 
     # --- Pattern B
-    parts, bonds, porosity = ab.random_packing(L, H, r_min, 1.5 * r_min, seed=1, fix_rotation=True)
+    parts, bonds, porosity = waves.random_packing(L, H, r_min, 1.5 * r_min, seed=1, fix_rotation=True)
     n_rand = int(np.sum(np.asarray(parts.valid)))
-    rnd = ab.bar_model(parts, bonds, length=L, height=H, dt_factor=0.9)
+    rnd = waves.bar_model(parts, bonds, length=L, height=H, dt_factor=0.9)
     right = rnd.conditions.boundaries[1]
     print(f"Pattern B ({n_rand} discs, porosity {porosity:.3f}): {len(right.index)} right-boundary "
           f"discs, sum of D = {float(np.sum(right.width)):.1f} m for a {H:.0f} m boundary")
-    h1 = ab.run_bar(rnd)
-    r1 = ab.reflection(h1, rnd)
-    print(f"  beta = 1: M_out/M_in = {ab.peak(h1, 4) / 0.5:.4f}, reflected at P3 {r1['ratio']:.2%}, "
+    h1 = waves.run_bar(rnd)
+    r1 = waves.reflection(h1, rnd)
+    print(f"  beta = 1: M_out/M_in = {waves.peak(h1, 4) / 0.5:.4f}, reflected at P3 {r1['ratio']:.2%}, "
           f"coda {coda(h1, rnd):.2%}, wave speed {r1['speed']:.0f} m/s")
     cals = {}
     for beta0 in (0.5, 1.0, 2.0):
         t0 = time.perf_counter()
-        cals[beta0] = ab.calibrate_ratio(rnd, beta0=beta0)
+        cals[beta0] = waves.calibrate_ratio(rnd, beta0=beta0)
         c = cals[beta0]
         print(f"  ratio iteration from {beta0}: beta = {c.beta:.4f}, {len(c.history)} runs, "
               f"|M_out/M_in - 1| = {abs(c.history[-1]['ratio'] - 1):.1e}, "
               f"{time.perf_counter() - t0:.0f} s")
         hist[f"ratio_iteration_{beta0}"] = np.array([[r["beta"], r["m_out"]] for r in c.history])
     beta_ratio = cals[1.0].beta
-    h_ratio = ab.run_bar(rnd, ab.with_betas(rnd, beta_right=beta_ratio))
-    r_ratio = ab.reflection(h_ratio, rnd)
-    e_ratio, _ = ab.reflected_energy(rnd, beta_ratio)
+    h_ratio = waves.run_bar(rnd, waves.with_betas(rnd, beta_right=beta_ratio))
+    r_ratio = waves.reflection(h_ratio, rnd)
+    e_ratio, _ = waves.reflected_energy(rnd, beta_ratio)
     t0 = time.perf_counter()
-    grad = ab.calibrate_gradient(rnd, beta0=1.0, steps=args.grad_steps)
+    grad = waves.calibrate_gradient(rnd, beta0=1.0, steps=args.grad_steps)
     t_grad = time.perf_counter() - t0
-    h_grad = ab.run_bar(rnd, ab.with_betas(rnd, beta_right=grad.beta))
-    r_grad = ab.reflection(h_grad, rnd)
+    h_grad = waves.run_bar(rnd, waves.with_betas(rnd, beta_right=grad.beta))
+    r_grad = waves.reflection(h_grad, rnd)
     e_grad = min(g["loss"] for g in grad.history)
-    e_one, _ = ab.reflected_energy(rnd, 1.0)
+    e_one, _ = waves.reflected_energy(rnd, 1.0)
     print(f"  ratio iteration: beta = {beta_ratio:.4f}, reflected energy {e_ratio:.3e}, "
-          f"P3 reflected {r_ratio['ratio']:.2%}, M_out/M_in {ab.peak(h_ratio, 4) / 0.5:.4f}")
+          f"P3 reflected {r_ratio['ratio']:.2%}, M_out/M_in {waves.peak(h_ratio, 4) / 0.5:.4f}")
     print(f"  gradient descent: beta = {grad.beta:.4f} after {len(grad.history)} evaluations "
           f"({t_grad:.0f} s), reflected energy {e_grad:.3e} (beta = 1: {e_one:.3e}), "
-          f"P3 reflected {r_grad['ratio']:.2%}, M_out/M_in {ab.peak(h_grad, 4) / 0.5:.4f}")
+          f"P3 reflected {r_grad['ratio']:.2%}, M_out/M_in {waves.peak(h_grad, 4) / 0.5:.4f}")
     hist["gradient_iterations"] = np.array([[g["beta"], g["loss"], g["grad"]] for g in grad.history])
     hist.update(random_time=h_ratio["time"], random_vel_beta1=h1["vel"][:, :, 0],
                 random_vel_ratio=h_ratio["vel"][:, :, 0], random_vel_grad=h_grad["vel"][:, :, 0])
@@ -136,33 +136,33 @@ def main(argv=None):
 
     # --- reflection against an extended reference (bar cut from an 1800 m packing)
     lx = 1.8 * L
-    pos, rad = ab.square_packing(int(lx / (2 * r_reg)), int(H / (2 * r_reg)), r_reg)
-    pair_a = ab.bar_pair(*ab.lattice(pos, rad, ab.square_density(RHO)), length=L, height=H,
+    pos, rad = waves.square_packing(int(lx / (2 * r_reg)), int(H / (2 * r_reg)), r_reg)
+    pair_a = waves.bar_pair(*waves.lattice(pos, rad, waves.square_density(RHO)), length=L, height=H,
                          dt_factor=0.9)
-    ref_a = ab.run_bar(pair_a.reference)
+    ref_a = waves.run_bar(pair_a.reference)
     new_a = {}
     for beta in (1.0, 0.5):
-        h = ab.run_bar(pair_a.truncated, ab.with_betas(pair_a.truncated, beta_right=beta))
-        new_a[beta] = ab.reflection_against_reference(h, ref_a, t_max=pair_a.record)
+        h = waves.run_bar(pair_a.truncated, waves.with_betas(pair_a.truncated, beta_right=beta))
+        new_a[beta] = waves.reflection_against_reference(h, ref_a, t_max=pair_a.record)
         print(f"Pattern A vs reference, beta = {beta}: reflected {new_a[beta]['ratio']:.2%} "
               f"(at {new_a[beta]['time']:.2f} s)")
-    parts_l, bonds_l, _ = ab.random_packing(lx, H, r_min, 1.5 * r_min, seed=1, fix_rotation=True)
-    pair_b = ab.bar_pair(parts_l, bonds_l, length=L, height=H, dt_factor=0.9)
+    parts_l, bonds_l, _ = waves.random_packing(lx, H, r_min, 1.5 * r_min, seed=1, fix_rotation=True)
+    pair_b = waves.bar_pair(parts_l, bonds_l, length=L, height=H, dt_factor=0.9)
     cut = pair_b.truncated
     rb_cut = cut.conditions.boundaries[1]
     print(f"Pattern B cut from a {lx:.0f} m packing: {int(np.sum(np.asarray(cut.state.particles.valid)))}"
           f" discs, {len(rb_cut.index)} exposed right-boundary discs, sum of D = "
           f"{float(np.sum(rb_cut.width)):.1f} m")
-    ref_b = ab.run_bar(pair_b.reference)
-    cal_cut = ab.calibrate_ratio(cut, beta0=1.0)
+    ref_b = waves.run_bar(pair_b.reference)
+    cal_cut = waves.calibrate_ratio(cut, beta0=1.0)
     print(f"  ratio iteration on the cut bar: beta = {cal_cut.beta:.4f} in {len(cal_cut.history)} runs"
           f" (converged {cal_cut.converged})")
     new_b = {}
     for name, beta in (("beta1", 1.0), ("beta05", 0.5), ("ratio", cal_cut.beta)):
-        h = ab.run_bar(cut, ab.with_betas(cut, beta_right=beta))
-        new_b[name] = ab.reflection_against_reference(h, ref_b, t_max=pair_b.record)
+        h = waves.run_bar(cut, waves.with_betas(cut, beta_right=beta))
+        new_b[name] = waves.reflection_against_reference(h, ref_b, t_max=pair_b.record)
         print(f"  Pattern B cut vs reference, beta = {beta:.4f}: reflected {new_b[name]['ratio']:.2%} "
-              f"(at {new_b[name]['time']:.2f} s), M_out/M_in {ab.peak(h, 4) / 0.5:.4f}")
+              f"(at {new_b[name]['time']:.2f} s), M_out/M_in {waves.peak(h, 4) / 0.5:.4f}")
     fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     for ax, (ref_h, res, title) in zip(axes, (
             (ref_a, new_a, "Pattern A at P3"), (ref_b, new_b, "Pattern B (cut) at P3"))):

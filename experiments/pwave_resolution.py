@@ -7,7 +7,7 @@ P pulse?  Reflection against disc size (001 §2.2–2.3, Pattern B).
     python experiments/pwave_resolution.py --out DIR
 
 For each size the 1000 m x 50 m bar of 001 Fig 1 is cut from one 1800 m random
-packing (radius ratio 1.5, seed 1; jdem.absorbing.bar_pair), so the right end
+packing (radius ratio 1.5, seed 1; jdem.waves.bar_pair), so the right end
 is a ragged cut face.  The ratio iteration (001 Fig 5) calibrates beta from
 beta0 = 1; a scan over beta shows how close that lands to the best beta.  The
 reflected amplitude is max |v_truncated - v_reference| at P3 over the record,
@@ -34,7 +34,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jdem.io  # noqa: E402
-from jdem import absorbing as ab  # noqa: E402
+from jdem import waves  # noqa: E402
 
 L, H, LX = 1000.0, 50.0, 1800.0
 SCAN = (0.7, 0.8, 0.85, 0.9, 0.95, 1.0)
@@ -43,18 +43,18 @@ SCAN = (0.7, 0.8, 0.85, 0.9, 0.95, 1.0)
 def one_size(r_min, seed, log=print):
     """Ratio iteration and a beta scan on the bar cut from one packing."""
     t0 = time.perf_counter()
-    parts, bonds, _ = ab.random_packing(LX, H, r_min, 1.5 * r_min, seed=seed, fix_rotation=True)
-    pair = ab.bar_pair(parts, bonds, length=L, height=H, dt_factor=0.9)
+    parts, bonds, _ = waves.random_packing(LX, H, r_min, 1.5 * r_min, seed=seed, fix_rotation=True)
+    pair = waves.bar_pair(parts, bonds, length=L, height=H, dt_factor=0.9)
     bar = pair.truncated
-    ref = ab.run_bar(pair.reference)
+    ref = waves.run_bar(pair.reference)
     face = bar.conditions.boundaries[1]
     n_discs = int(np.sum(np.asarray(bar.state.particles.valid)))
 
     def reflected(beta):
-        h = ab.run_bar(bar, ab.with_betas(bar, beta_right=beta))
-        return ab.reflection_against_reference(h, ref, t_max=pair.record)["ratio"]
+        h = waves.run_bar(bar, waves.with_betas(bar, beta_right=beta))
+        return waves.reflection_against_reference(h, ref, t_max=pair.record)["ratio"]
 
-    cal = ab.calibrate_ratio(bar, beta0=1.0)
+    cal = waves.calibrate_ratio(bar, beta0=1.0)
     row = dict(r_min=r_min, r_max=1.5 * r_min, discs=n_discs, face_discs=int(face.index.shape[0]),
                beta_ratio=cal.beta, runs=len(cal.history), converged=cal.converged,
                final_ratio_error=abs(cal.history[-1]["ratio"] - 1),

@@ -43,7 +43,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jdem.io  # noqa: E402
-from jdem import absorbing as ab  # noqa: E402
+from jdem import waves  # noqa: E402
 from jdem.simulate import make_state, run  # noqa: E402
 
 RHO, CP = 2500.0, 1000.0
@@ -59,7 +59,7 @@ def build(radius, *, width, lateral, t_end):
     d = 2.0 * radius
     nx, ny = int(round(width / d)), int(round(SIZE / d))
     x0 = -(width - SIZE) / 2.0
-    pos, rad = ab.square_packing(nx, ny, radius, origin=(x0, 0.0))
+    pos, rad = waves.square_packing(nx, ny, radius, origin=(x0, 0.0))
     centre = np.array([SIZE / 2.0, SIZE / 2.0])
     keep = np.linalg.norm(pos - centre, axis=1) > TUNNEL_R
     pos, rad = pos[keep], rad[keep]
@@ -67,39 +67,39 @@ def build(radius, *, width, lateral, t_end):
     columns = []
     if lateral == "free-field":
         for xc in (x0 - width, x0 + 2 * width):           # far from the main model
-            cp, cr = ab.square_packing(1, ny, radius, origin=(xc, 0.0))
+            cp, cr = waves.square_packing(1, ny, radius, origin=(xc, 0.0))
             columns.append(np.arange(len(rad), len(rad) + ny))
             pos, rad = np.vstack([pos, cp]), np.concatenate([rad, cr])
-    parts, bonds = ab.lattice(pos, rad, ab.square_density(RHO), fix_rotation=True)
+    parts, bonds = waves.lattice(pos, rad, waves.square_density(RHO), fix_rotation=True)
     main = np.arange(n_main)
-    params = ab.wave_params(CP, RHO, bond_poisson=0.0)
+    params = waves.wave_params(CP, RHO, bond_poisson=0.0)
     if lateral == "roller":
         for side in ("left", "right"):
-            idx = ab.boundary_particles(parts, side, among=main).index
+            idx = waves.boundary_particles(parts, side, among=main).index
             parts = parts._replace(fixed_vel=parts.fixed_vel.at[idx, 1].set(True))
     state, config = make_state(parts, bonds=bonds)
-    params = params._replace(dt=jax.numpy.asarray(ab.stable_dt(state, params, config, 0.9)))
+    params = params._replace(dt=jax.numpy.asarray(waves.stable_dt(state, params, config, 0.9)))
 
-    time_, vel, disp = ab.cosine_pulse(M, T)
-    v_in, u_in = ab.incident_wave(time_, vel, disp, (1.0, 0.0))   # SV: along +x
+    time_, vel, disp = waves.cosine_pulse(M, T)
+    v_in, u_in = waves.incident_wave(time_, vel, disp, (1.0, 0.0))   # SV: along +x
     kw = dict(density=RHO, c_p=CP, c_s=CS)
-    base = ab.boundary_particles(parts, "bottom", among=main)
-    bounds = [ab.make_boundary(base, parts, incident_vel=v_in, incident_disp=u_in, **kw)]
+    base = waves.boundary_particles(parts, "bottom", among=main)
+    bounds = [waves.make_boundary(base, parts, incident_vel=v_in, incident_disp=u_in, **kw)]
     for col in columns:
-        foot = ab.BoundarySet(index=col[:1], width=2 * rad[col[:1]], normal=np.array([0.0, -1.0]),
+        foot = waves.BoundarySet(index=col[:1], width=2 * rad[col[:1]], normal=np.array([0.0, -1.0]),
                               tangent=np.array([1.0, 0.0]), position=0.0)
-        bounds.append(ab.make_boundary(foot, parts, incident_vel=v_in, incident_disp=u_in, **kw))
+        bounds.append(waves.make_boundary(foot, parts, incident_vel=v_in, incident_disp=u_in, **kw))
     if lateral in ("free-field", "viscous"):
         for k, side in enumerate(("left", "right")):
-            bset = ab.boundary_particles(parts, side, among=main)
-            ff = (ab.free_field_coupling(parts, bonds, bset, columns[k])
+            bset = waves.boundary_particles(parts, side, among=main)
+            ff = (waves.free_field_coupling(parts, bonds, bset, columns[k])
                   if lateral == "free-field" else None)
-            bounds.append(ab.make_boundary(bset, parts, free_field=ff, **kw))
-    cond = ab.Conditions(boundaries=tuple(bounds))
-    state, cond = ab.activate(state, params, config, cond)
+            bounds.append(waves.make_boundary(bset, parts, free_field=ff, **kw))
+    cond = waves.Conditions(boundaries=tuple(bounds))
+    state, cond = waves.activate(state, params, config, cond)
     p1 = centre - [TUNNEL_R + radius, 0.0]
     p2 = centre + [0.0, TUNNEL_R + radius]
-    monitors = ab.Monitors(ab.monitor_groups(parts, [p1, p2]))
+    monitors = waves.Monitors(waves.monitor_groups(parts, [p1, p2]))
     n_steps = int(math.ceil(t_end / float(params.dt) / 100)) * 100
     return state, params, config, cond, monitors, n_steps
 
@@ -108,7 +108,7 @@ def simulate(radius, width, lateral, t_end):
     t0 = time.perf_counter()
     state, params, config, cond, mon, n = build(radius, width=width, lateral=lateral, t_end=t_end)
     res = run(state, params, config, n, record_every=2, observe=mon, chunk_steps=1000,
-              progress=False, boundary=(ab.apply_conditions, cond))
+              progress=False, boundary=(waves.apply_conditions, cond))
     n_disc = int(np.sum(np.asarray(state.particles.valid)))
     wall = time.perf_counter() - t0
     print(f"  {lateral:10s} width {width:6.0f} m: {n_disc} discs, {n} steps, {wall:.1f} s")

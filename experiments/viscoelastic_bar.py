@@ -36,7 +36,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jdem.io  # noqa: E402
-from jdem import absorbing as ab  # noqa: E402
+from jdem import waves  # noqa: E402
 
 L, H, RHO, CP = 1000.0, 50.0, 2500.0, 1000.0
 
@@ -51,19 +51,19 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     r_min = 4.0 if args.small else 2.0
     t0 = time.perf_counter()
-    parts, bonds, porosity = ab.random_packing(L, H, r_min, 1.5 * r_min, seed=1, fix_rotation=True)
+    parts, bonds, porosity = waves.random_packing(L, H, r_min, 1.5 * r_min, seed=1, fix_rotation=True)
     print(f"packing: {int(np.sum(np.asarray(parts.valid)))} discs, porosity {porosity:.3f}")
-    driven = ab.bar_model(parts, bonds, length=L, height=H, dt_factor=0.9)
-    right = ab.calibrate_ratio(driven)
+    driven = waves.bar_model(parts, bonds, length=L, height=H, dt_factor=0.9)
+    right = waves.calibrate_ratio(driven)
     print(f"right beta_2P = {right.beta:.4f} after {len(right.history)} runs")
-    k = ab.viscoelastic_stiffness(ab.contact_modulus(CP, RHO), 0.0, L, 2.5)
-    model = ab.bar_model(parts, bonds, length=L, height=H, dt_factor=0.9, input="viscous",
+    k = waves.viscoelastic_stiffness(waves.contact_modulus(CP, RHO), 0.0, L, 2.5)
+    model = waves.bar_model(parts, bonds, length=L, height=H, dt_factor=0.9, input="viscous",
                          beta_right=right.beta, k_right=k, t_end=args.t_end)
-    left = ab.calibrate_ratio(ab.bar_model(parts, bonds, length=L, height=H, dt_factor=0.9,
+    left = waves.calibrate_ratio(waves.bar_model(parts, bonds, length=L, height=H, dt_factor=0.9,
                                            input="viscous", beta_right=right.beta),
                               boundary="left")
     print(f"left (input) beta_2P = {left.beta:.4f} after {len(left.history)} runs")
-    h = ab.run_bar(model, ab.with_betas(model, beta_left=left.beta))
+    h = waves.run_bar(model, waves.with_betas(model, beta_left=left.beta))
     wall = time.perf_counter() - t0
     d = h["disp"][:, :, 0]
     peak = np.abs(d).max(axis=0)

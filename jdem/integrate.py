@@ -52,7 +52,7 @@ def physics_step(state: State, params: Params, config: Config, boundary=None) ->
     """Advance one step assuming the neighbour list is current.
 
     ``boundary`` (optional) is a pair ``(fn, data)`` of boundary conditions that
-    act from outside the particle system (e.g. :mod:`jdem.absorbing`):
+    act from outside the particle system (e.g. :mod:`jdem.waves`):
     ``fn(state, params, data) -> (state, force)`` is called first; it may set the
     velocity of prescribed (``fixed_vel``) components, e.g. an input velocity
     history, and returns an extra force (N, d) [N] that is added to the particle

@@ -1,0 +1,97 @@
+"""Elastic media for wave problems (001 §2.2, §3.1): parameters that give a
+chosen P-wave speed, square and random bonded packings (Patterns A and B of
+001 Fig 2) and a stable time step for them.
+
+Citations ("001 eq 10") refer to the documents listed in REFERENCES.md.
+"""
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from jdem import timestep
+from jdem.bond import create_bonds
+from jdem.specimen import generate
+from jdem.state import Params, make_params, make_particles
+from jdem.validate import InputError, require_positive
+
+
+def wave_params(c_p, density, *, bond_poisson=0.0, dt=1.0, dim=2) -> Params:
+    """Params for elastic wave problems with linked-bar bonds (002 §1).
+
+    The bond modulus is E_b = rho c_P^2 (001 eq 10, 11 with the whole stiffness
+    in the bond): in a square arrangement of equal discs the bond stiffness
+    K_n = E_b A_c / L = E_b makes the 1D P-wave speed c_P.  Bonds never break
+    (strengths 1e12 Pa), friction and damping are zero (001 §2.2), unbonded
+    contacts (rare, in random packings) get k_n = k_s = E_b x 1 m.
+    """
+    c = float(require_positive("c_p", c_p))
+    rho = float(require_positive("density", density))
+    e = rho * c * c
+    return make_params(dim=dim, dt=dt, kn=e, ks=e, friction=0.0, bond_youngs=e,
+                       bond_poisson=bond_poisson, bond_tensile=1e12, bond_cohesion=1e12,
+                       bond_tensile_strain=0.0, bond_shear_strain=0.0)
+
+
+
+def contact_modulus(c_p, density, alpha_c=0.5):
+    """E_c = alpha_c rho c_P^2 [Pa] (001 eq 11, alpha_c = 0.5): the modulus 001
+    §3.1 puts into eq 14 in place of the assembly's E (with nu = 0)."""
+    return float(alpha_c) * float(require_positive("density", density)) * \
+        float(require_positive("c_p", c_p)) ** 2
+
+
+
+def square_packing(nx, ny, radius, *, origin=(0.0, 0.0)):
+    """Centres (nx ny, 2) and radii of equal discs in a square arrangement, row by
+    row from the lower left (Pattern A of 001 Fig 2), lower-left corner at ``origin``."""
+    for name, v in (("nx", nx), ("ny", ny)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise InputError(f"{name} must be a positive integer, got {v!r}")
+    r = float(require_positive("radius", radius))
+    gx, gy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="xy")
+    pos = np.stack([gx.ravel(), gy.ravel()], axis=1) * 2.0 * r + r + np.asarray(origin, float)
+    return pos, np.full(nx * ny, r)
+
+
+
+def square_density(density):
+    """Disc density [kg/m^3] that gives the macroscopic density ``density`` in a
+    square arrangement: m = rho (2r)^2, i.e. rho_disc = 4 rho / pi."""
+    return 4.0 * float(require_positive("density", density)) / math.pi
+
+
+
+def lattice(pos, rad, disc_density, *, fix_rotation=False, dtype=None):
+    """Particles and bonds of an assembly whose touching neighbours are bonded."""
+    p = make_particles(pos, rad, density=disc_density, dtype=dtype)
+    if fix_rotation:
+        p = p._replace(fixed_rot=jnp.ones_like(p.fixed_rot))
+    bonds = create_bonds(p, 2, gap_tolerance=1e-6 * float(np.min(rad)))
+    return p, bonds
+
+
+
+def random_packing(length, height, r_min, r_max, *, density=2500.0, seed=0, fix_rotation=False):
+    """A bonded random packing of [0, length] x [0, height] (Pattern B of 001 Fig 2:
+    radii uniform in [r_min, r_max]) from :func:`jdem.specimen.generate`, with
+    disc density rho / (1 - porosity) so that the macroscopic density is
+    ``density``.  Returns ``(particles, bonds, porosity)``."""
+    sp = generate("rectangle", (float(length), float(height)), r_min, r_max, seed=seed)
+    solid = 1.0 - sp.porosity
+    p = sp.particles
+    parts = make_particles(np.asarray(p.pos), np.asarray(p.radius), density=density / solid)
+    if fix_rotation:
+        parts = parts._replace(fixed_rot=jnp.ones_like(parts.fixed_rot))
+    return parts, sp.bonds, float(sp.porosity)
+
+
+
+def stable_dt(state, params, config, factor=0.5):
+    """``factor`` times the critical time step of the bonded assembly [s]."""
+    crit = float(timestep.critical_timestep(state, params._replace(dt=jnp.asarray(1.0)), config))
+    if not np.isfinite(crit):
+        raise InputError("stable_dt: nothing is bonded or touching")
+    return factor * crit
