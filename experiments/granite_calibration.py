@@ -29,7 +29,7 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
-from jdem import calibrate, lab  # noqa: E402
+from jdem import calibrate, lab, plot  # noqa: E402
 from jdem.batch import broadcast_batch  # noqa: E402
 from jdem.materials import material, rock_params  # noqa: E402
 from jdem.specimen import generate  # noqa: E402
@@ -99,7 +99,7 @@ def main():
     reached = dict(E=su["youngs_modulus"], nu=su["poisson_ratio"], ucs=su["peak_stress"],
                    bts=float(np.max(hb["tensile_strength_indirect"])))
     cert = lab.certify(ucs, fitted)
-    calibrate.plot_calibration(res, OUT / "calibration.png")
+    plot.plot_calibration(res, OUT / "calibration.png")
     out = dict(targets=GRANITE, ratio_scan=scan, fitted=res.values, std_errors=res.std_errors,
                intervals=res.intervals, poorly_determined=res.poorly_determined,
                reached=reached, ucs_over_bts=reached["ucs"] / reached["bts"],

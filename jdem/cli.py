@@ -36,30 +36,11 @@ import sys
 import time
 
 
-def _plot_single_bond(hist, analytic, title, xlabel, ylabel, path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5.5, 4))
-    ax.plot(hist["strain"] * 100, hist["stress"] / 1e6, lw=2, label="jdem")
-    ax.plot(hist["strain"] * 100, analytic / 1e6, "k--", lw=1, label="theory (002 eq 6–9)")
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
 def demo(out="results/demo", small=False):
     """Single-bond tension and direct shear with the seed's parameters."""
     import numpy as np
 
-    from jdem import io
+    from jdem import io, plot
     from jdem.lab import single_bond
     from jdem.materials import seed_params
 
@@ -74,7 +55,7 @@ def demo(out="results/demo", small=False):
         params = seed_params(3)
         analytic = single_bond.analytic_single_bond_curve(mode, hist["strain"], params)
         label = "tensile" if mode == "tension" else "shear"
-        _plot_single_bond(hist, analytic, f"single linked bar: {mode}",
+        plot.plot_single_bond(hist, analytic, f"single linked bar: {mode}",
                           f"{label} strain [%]", f"{label} stress [MPa]", out / f"{mode}.png")
         histories[mode] = hist
         peak = float(np.max(hist["stress"]))
@@ -95,7 +76,7 @@ def calibration_demo(out, small=False):
     import jax
 
     jax.config.update("jax_enable_x64", True)   # sub-nanometre platen steps need float64
-    from jdem import calibrate
+    from jdem import calibrate, plot
 
     t0 = time.time()
     print("jdem demo: calibrating E and T0 = c0 of a ~100-disc specimen against a target "
@@ -111,7 +92,7 @@ def calibration_demo(out, small=False):
     res = calibrate.calibrate(setup, target, start, steps=12 if small else 20,
                               progress=True, out=out / "calibration.h5",
                               require_quasi_static=False)
-    calibrate.plot_calibration(res, out / "calibration.png", true_values=true)
+    plot.plot_calibration(res, out / "calibration.png", true_values=true)
     print(calibrate.report(res, true))
     print(f"  loss {res.history['loss'][0]:.3g} -> {res.loss:.3g} in {res.steps} iterations "
           f"-> {out / 'calibration.png'}, {out / 'calibration.h5'}  ({time.time() - t0:.0f} s)")
@@ -225,32 +206,6 @@ def ucs_settings(config_path=None, small=False, defaults=None) -> dict:
     return cfg
 
 
-def _plot_ucs(hist, kappas, path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    strain = np.atleast_2d(hist["axial_strain"])
-    stress = np.atleast_2d(hist["axial_stress"])
-    fd = np.atleast_2d(hist["fracture_degree"])
-    fig, ax = plt.subplots(figsize=(6, 4.2))
-    ax2 = ax.twinx()
-    for b, k in enumerate(kappas):
-        line, = ax.plot(strain[b] * 1e6, stress[b] / 1e6, lw=1.6, label=f"κ = {k * 100:g} %")
-        ax2.plot(strain[b] * 1e6, fd[b] * 100, ls=":", lw=1, color=line.get_color())
-    ax.set_xlabel("axial strain [10⁻⁶]")
-    ax.set_ylabel("axial stress [MPa]")
-    ax2.set_ylabel("fracture degree [%] (dotted)")
-    ax.set_title("uniaxial compression (002 §2)")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="upper right", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
 def ucs(config=None, out="results/ucs", small=False, progress=True):
     """``jdem ucs``: generate the specimen, compress it, write ``ucs.png`` and
     ``ucs.h5`` to ``out``; returns the HDF5 path."""
@@ -259,7 +214,7 @@ def ucs(config=None, out="results/ucs", small=False, progress=True):
 
     # sub-nanometre platen steps on a 10 cm specimen are below float32 resolution
     jax.config.update("jax_enable_x64", True)
-    from jdem import io, lab, specimen
+    from jdem import io, lab, plot, specimen
     from jdem.materials import rock_params
 
     cfg = ucs_settings(config, small)
@@ -292,7 +247,7 @@ def ucs(config=None, out="results/ucs", small=False, progress=True):
     hist, state, config_ = res.history, res.state, res.setup.plan.config
     run_time = time.time() - t1
     summary = lab.peak_summary(hist)
-    _plot_ucs(hist, kappas, out / "ucs.png")
+    plot.plot_ucs(hist, kappas, out / "ucs.png")
     attrs = {"what": "uniaxial compression, 002 §2", "run_time_s": run_time,
              "n_particles": int(spec.info["n_particles"]), "porosity": float(spec.porosity),
              "coordination": float(spec.coordination)}
@@ -388,7 +343,7 @@ def calibrate_cli(curve, config=None, out="results/calibrate", small=False, prog
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from jdem import calibrate, lab, specimen
+    from jdem import calibrate, lab, plot, specimen
     from jdem.materials import rock_params
 
     cfg = calibrate_settings(config, small)
@@ -425,7 +380,7 @@ def calibrate_cli(curve, config=None, out="results/calibrate", small=False, prog
     res = calibrate.calibrate(setup, target, start, bounds=bounds or None, method=fit["method"],
                               steps=fit["steps"], progress=progress, out=out / "calibration.h5",
                               require_quasi_static=fit["require_quasi_static"])
-    calibrate.plot_calibration(res, out / "calibration.png")
+    plot.plot_calibration(res, out / "calibration.png")
     print(calibrate.report(res))
     print(f"  -> {out / 'calibration.png'}, {out / 'calibration.h5'}  "
           f"({time.time() - t0:.0f} s)")

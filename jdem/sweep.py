@@ -11,7 +11,7 @@ themselves.
 * :func:`sweep` runs them and returns a :class:`SweepTable`.
 * :func:`save_sweep` / :func:`load_sweep` write and read the table as HDF5;
   :func:`merge_sweeps` joins the parts written by several processes.
-* :func:`plot_sweep` draws a heat map (two parameters on a grid) or a curve
+* :func:`jdem.plot.plot_sweep` draws a heat map (two parameters on a grid) or a curve
   (one parameter) of any column.
 
 Parameter names are those of :data:`jdem.calibrate.PARAMETERS` (``E`` [Pa],
@@ -526,98 +526,3 @@ def load_sweep(path) -> SweepTable:
             attrs[key] = json.loads(value) if key in json_keys else value
         columns = {key: io.read_dataset(ds) for key, ds in f["table"].items()}
     return SweepTable(columns, attrs)
-
-
-# ----------------------------------------------------------------------------- plots
-#: axis labels and the factor converting SI to the plotted unit
-_UNITS = {
-    "E": ("E [GPa]", 1e-9), "T0": ("T0 [MPa]", 1e-6), "c0": ("c0 [MPa]", 1e-6),
-    "strength": ("T0 = c0 [MPa]", 1e-6), "phi": ("phi [deg]", 180.0 / np.pi),
-    "eps_lim": ("eps_lim [-]", 1.0), "gamma_lim": ("gamma_lim [-]", 1.0),
-    "kappa": ("kappa [-]", 1.0), "nu": ("nu [-]", 1.0),
-    "peak_stress": ("peak stress [MPa]", 1e-6), "final_stress": ("final stress [MPa]", 1e-6),
-    "tensile_strength": ("tensile strength [MPa]", 1e-6),
-    "youngs_modulus": ("Young's modulus [GPa]", 1e-9),
-    "critical_strain": ("critical strain [1e-3]", 1e3),
-    "poisson_ratio": ("Poisson ratio [-]", 1.0),
-    "fracture_degree_at_peak": ("fracture degree at peak [-]", 1.0),
-    "fracture_degree_end": ("fracture degree at end [-]", 1.0),
-}
-
-
-def _label(name):
-    return _UNITS.get(name, (name, 1.0))
-
-
-def _column(table, name, what):
-    if name not in table:
-        raise InputError(f"{what} {name!r} is not a column of the table; columns: "
-                         f"{sorted(k for k in table if np.ndim(table[k]) == 1)}")
-    a = np.asarray(table[name], np.float64)
-    if a.ndim != 1:
-        raise InputError(f"{what} {name!r} has shape {a.shape}; plot_sweep needs a (n,) column")
-    return a
-
-
-def plot_sweep(table, x, y=None, value="peak_stress", ax=None, path=None):
-    """Plot a column of a sweep table against one or two swept parameters.
-
-    x, y     column names (usually swept parameters).  With ``y``: a heat map
-             of ``value`` over the (x, y) grid when every combination of the
-             distinct x and y values occurs exactly once, otherwise a scatter
-             plot coloured by ``value``.  Without ``y``: ``value`` against x,
-             a line with markers when x values are distinct, else a scatter.
-    value    the column to show (default ``peak_stress``)
-    ax       a matplotlib Axes to draw on; default a new Agg figure
-    path     write the figure as PNG there
-
-    Units: stresses in MPa, moduli in GPa, strains as given (critical strain
-    in 1e-3).  Returns the Axes.
-    """
-    xs = _column(table, x, "x")
-    vs = _column(table, value, "value")
-    if ax is None:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-
-        fig = Figure(figsize=(5.5, 4.2))
-        FigureCanvasAgg(fig)
-        ax = fig.add_subplot()
-    fig = ax.figure
-    vlabel, vscale = _label(value)
-    xlabel, xscale = _label(x)
-    if y is None:
-        order = np.argsort(xs, kind="stable")
-        if np.unique(xs).size == xs.size:
-            ax.plot(xs[order] * xscale, vs[order] * vscale, "o-")
-        else:
-            ax.scatter(xs * xscale, vs * vscale)
-        ax.set_ylabel(vlabel)
-    else:
-        ys = _column(table, y, "y")
-        ylabel, yscale = _label(y)
-        ux, uy = np.unique(xs), np.unique(ys)
-        ix, iy = np.searchsorted(ux, xs), np.searchsorted(uy, ys)
-        cells = np.full((uy.size, ux.size), np.nan)
-        count = np.zeros((uy.size, ux.size), int)
-        np.add.at(count, (iy, ix), 1)
-        if np.all(count == 1):
-            cells[iy, ix] = vs * vscale
-            im = ax.imshow(cells, origin="lower", aspect="auto", cmap="viridis")
-            ax.set_xticks(range(ux.size), [f"{v * xscale:.3g}" for v in ux])
-            ax.set_yticks(range(uy.size), [f"{v * yscale:.3g}" for v in uy])
-            for (j, i), c in np.ndenumerate(cells):
-                ax.text(i, j, f"{c:.3g}", ha="center", va="center", fontsize=8,
-                        color="w" if c < np.nanmean(cells) else "k")
-        else:
-            im = ax.scatter(xs * xscale, ys * yscale, c=vs * vscale, cmap="viridis")
-        fig.colorbar(im, ax=ax, label=vlabel)
-        ax.set_ylabel(ylabel)
-    ax.set_xlabel(xlabel)
-    ax.set_title(f"{table.attrs.get('test', 'sweep') if hasattr(table, 'attrs') else 'sweep'}: "
-                 f"{vlabel.split(' [')[0]}")
-    if path is not None:
-        path = pathlib.Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=120, bbox_inches="tight")
-    return ax

@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from jdem import InputError
-from jdem import lab
+from jdem import lab, plot
 from jdem import materials as lt
 from jdem import sweep as sw
 from jdem.specimen import generate
@@ -198,17 +198,17 @@ def test_save_load_round_trip(table, tmp_path):
 
 
 def test_plot_sweep_heat_map_and_line(table, tmp_path):
-    ax = sw.plot_sweep(table, "eps_lim", "strength", value="peak_stress",
+    ax = plot.plot_sweep(table, "eps_lim", "strength", value="peak_stress",
                        path=tmp_path / "heat.png")
     assert (tmp_path / "heat.png").stat().st_size > 5_000
     assert ax.images and ax.images[0].get_array().shape == (len(STRENGTHS), len(EPS_LIMS))
     cells = np.asarray(ax.images[0].get_array())
     np.testing.assert_allclose(cells.T.ravel(), table["peak_stress"] * 1e-6)
-    ax = sw.plot_sweep(table, "strength", value="critical_strain", path=tmp_path / "line.png")
+    ax = plot.plot_sweep(table, "strength", value="critical_strain", path=tmp_path / "line.png")
     assert (tmp_path / "line.png").stat().st_size > 5_000
     assert len(ax.collections) == 1           # repeated strength values: a scatter
     with pytest.raises(InputError, match="'bogus' is not a column"):
-        sw.plot_sweep(table, "bogus")
+        plot.plot_sweep(table, "bogus")
 
 
 # ----------------------------------------------------------------------------- bad input

@@ -1,0 +1,229 @@
+"""Every figure the library draws: single-bond curves, UCS curves, the
+calibration report and sweep maps.  The CLI, the notebooks and the experiments
+call these; matplotlib is imported only when a figure is drawn.
+
+Functions that take ``path`` write a PNG there (with the Agg backend, so they
+work without a display).  Units on the axes: stresses in MPa, moduli in GPa.
+"""
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+
+from jdem.validate import InputError
+
+
+# ----------------------------------------------------------------------------- lab tests
+def plot_single_bond(hist, analytic, title, xlabel, ylabel, path):
+    """A single-bond test's stress against strain (``hist["strain"]``,
+    ``hist["stress"]`` [Pa]) beside the analytic curve ``analytic`` [Pa] (002 eq 6–9),
+    written as PNG to ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    ax.plot(hist["strain"] * 100, hist["stress"] / 1e6, lw=2, label="jdem")
+    ax.plot(hist["strain"] * 100, analytic / 1e6, "k--", lw=1, label="theory (002 eq 6–9)")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_ucs(hist, kappas, path):
+    """UCS curves, one per softening strain in ``kappas``: axial stress [Pa] and
+    fracture degree against axial strain (``hist`` with (B, K) or (K,) arrays
+    ``axial_strain``, ``axial_stress``, ``fracture_degree``), written as PNG to ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    strain = np.atleast_2d(hist["axial_strain"])
+    stress = np.atleast_2d(hist["axial_stress"])
+    fd = np.atleast_2d(hist["fracture_degree"])
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    ax2 = ax.twinx()
+    for b, k in enumerate(kappas):
+        line, = ax.plot(strain[b] * 1e6, stress[b] / 1e6, lw=1.6, label=f"κ = {k * 100:g} %")
+        ax2.plot(strain[b] * 1e6, fd[b] * 100, ls=":", lw=1, color=line.get_color())
+    ax.set_xlabel("axial strain [10⁻⁶]")
+    ax.set_ylabel("axial stress [MPa]")
+    ax2.set_ylabel("fracture degree [%] (dotted)")
+    ax.set_title("uniaxial compression (002 §2)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------- calibration
+def plot_calibration(res, path=None, *, true_values=None):
+    """The report of a :class:`jdem.calibrate.CalibrationResult` ``res``, four panels: target, start and fitted curves; the fit's residual stress;
+    the loss history; the fitted values with their 95 % intervals and the
+    correlation matrix.  Written as PNG when ``path`` is given; returns the figure."""
+    import matplotlib
+
+    if path is not None:
+        matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    c = res.curves
+    fig, axes = plt.subplots(2, 2, figsize=(11, 8))
+    ax, rx, bx, cx = axes.ravel()
+    if "target_strain" in c:
+        ax.plot(c["target_strain"] * 100, c["target_stress"] / 1e6, "k-", lw=2.5,
+                label="target")
+    for key, style, label in (("start_stress", "C1--", "start"), ("fit_stress", "C0-", "fitted")):
+        if key not in c:
+            continue
+        s, e = np.atleast_2d(c[key]), np.atleast_2d(c["strain"])
+        for m in range(s.shape[0]):
+            ax.plot(e[m] * 100, s[m] / 1e6, style, lw=1.2, label=label if m == 0 else None)
+            if key == "fit_stress" and "target_strain" in c:
+                sim = np.interp(c["target_strain"], e[m], s[m])
+                rx.plot(c["target_strain"] * 100, (sim - c["target_stress"]) / 1e6, "C0-",
+                        lw=1)
+    ax.set(xlabel="axial strain [%]", ylabel="axial stress [MPa]", title="stress-strain")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    rx.axhline(0, color="k", lw=0.8)
+    rx.set(xlabel="axial strain [%]", ylabel="fitted - target [MPa]", title="residual")
+    rx.grid(alpha=0.3)
+    loss = res.history["loss"]
+    bx.semilogy(np.arange(len(loss)), loss, "C0.-")
+    bx.set(xlabel="iteration", ylabel="sum of squared residuals",
+           title=f"{res.method}, {res.jacobian} Jacobian: {res.steps} iterations, "
+                 f"{res.wall_time:.0f} s")
+    bx.grid(alpha=0.3, which="both")
+    names = list(res.values)
+    for i, n in enumerate(names):
+        v = res.values[n]
+        lo, hi = res.intervals.get(n, (v, v))
+        cx.errorbar([i], [1.0], yerr=[[1 - lo / v], [hi / v - 1]], fmt="o", color="C0",
+                    capsize=4)
+        if true_values and n in true_values:
+            cx.plot([i], [true_values[n] / v], "kx", ms=9, label="true" if i == 0 else None)
+        cx.plot([i], [res.start[n] / v], "C1s", ms=5, label="start" if i == 0 else None)
+    cx.set_xticks(range(len(names)), names)
+    cx.set(ylabel="value / fitted", title="fitted values, 95 % intervals")
+    cx.grid(alpha=0.3)
+    cx.legend(fontsize=8)
+    if np.size(res.correlation) > 1:
+        ins = cx.inset_axes([0.62, 0.55, 0.36, 0.42])
+        ins.imshow(res.correlation, vmin=-1, vmax=1, cmap="RdBu_r")
+        for i in range(len(names)):
+            for j in range(len(names)):
+                ins.text(j, i, f"{res.correlation[i, j]:.2f}", ha="center", va="center",
+                         fontsize=7)
+        ins.set_xticks(range(len(names)), names, fontsize=7)
+        ins.set_yticks(range(len(names)), names, fontsize=7)
+        ins.set_title("correlation", fontsize=8)
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+    return fig
+
+
+# ----------------------------------------------------------------------------- sweeps
+#: axis labels and the factor converting SI to the plotted unit
+_UNITS = {
+    "E": ("E [GPa]", 1e-9), "T0": ("T0 [MPa]", 1e-6), "c0": ("c0 [MPa]", 1e-6),
+    "strength": ("T0 = c0 [MPa]", 1e-6), "phi": ("phi [deg]", 180.0 / np.pi),
+    "eps_lim": ("eps_lim [-]", 1.0), "gamma_lim": ("gamma_lim [-]", 1.0),
+    "kappa": ("kappa [-]", 1.0), "nu": ("nu [-]", 1.0),
+    "peak_stress": ("peak stress [MPa]", 1e-6), "final_stress": ("final stress [MPa]", 1e-6),
+    "tensile_strength": ("tensile strength [MPa]", 1e-6),
+    "youngs_modulus": ("Young's modulus [GPa]", 1e-9),
+    "critical_strain": ("critical strain [1e-3]", 1e3),
+    "poisson_ratio": ("Poisson ratio [-]", 1.0),
+    "fracture_degree_at_peak": ("fracture degree at peak [-]", 1.0),
+    "fracture_degree_end": ("fracture degree at end [-]", 1.0),
+}
+
+
+def _label(name):
+    return _UNITS.get(name, (name, 1.0))
+
+
+def _column(table, name, what):
+    if name not in table:
+        raise InputError(f"{what} {name!r} is not a column of the table; columns: "
+                         f"{sorted(k for k in table if np.ndim(table[k]) == 1)}")
+    a = np.asarray(table[name], np.float64)
+    if a.ndim != 1:
+        raise InputError(f"{what} {name!r} has shape {a.shape}; plot_sweep needs a (n,) column")
+    return a
+
+
+def plot_sweep(table, x, y=None, value="peak_stress", ax=None, path=None):
+    """Plot a column of a sweep table against one or two swept parameters.
+
+    x, y     column names (usually swept parameters).  With ``y``: a heat map
+             of ``value`` over the (x, y) grid when every combination of the
+             distinct x and y values occurs exactly once, otherwise a scatter
+             plot coloured by ``value``.  Without ``y``: ``value`` against x,
+             a line with markers when x values are distinct, else a scatter.
+    value    the column to show (default ``peak_stress``)
+    ax       a matplotlib Axes to draw on; default a new Agg figure
+    path     write the figure as PNG there
+
+    Units: stresses in MPa, moduli in GPa, strains as given (critical strain
+    in 1e-3).  Returns the Axes.
+    """
+    xs = _column(table, x, "x")
+    vs = _column(table, value, "value")
+    if ax is None:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        fig = Figure(figsize=(5.5, 4.2))
+        FigureCanvasAgg(fig)
+        ax = fig.add_subplot()
+    fig = ax.figure
+    vlabel, vscale = _label(value)
+    xlabel, xscale = _label(x)
+    if y is None:
+        order = np.argsort(xs, kind="stable")
+        if np.unique(xs).size == xs.size:
+            ax.plot(xs[order] * xscale, vs[order] * vscale, "o-")
+        else:
+            ax.scatter(xs * xscale, vs * vscale)
+        ax.set_ylabel(vlabel)
+    else:
+        ys = _column(table, y, "y")
+        ylabel, yscale = _label(y)
+        ux, uy = np.unique(xs), np.unique(ys)
+        ix, iy = np.searchsorted(ux, xs), np.searchsorted(uy, ys)
+        cells = np.full((uy.size, ux.size), np.nan)
+        count = np.zeros((uy.size, ux.size), int)
+        np.add.at(count, (iy, ix), 1)
+        if np.all(count == 1):
+            cells[iy, ix] = vs * vscale
+            im = ax.imshow(cells, origin="lower", aspect="auto", cmap="viridis")
+            ax.set_xticks(range(ux.size), [f"{v * xscale:.3g}" for v in ux])
+            ax.set_yticks(range(uy.size), [f"{v * yscale:.3g}" for v in uy])
+            for (j, i), c in np.ndenumerate(cells):
+                ax.text(i, j, f"{c:.3g}", ha="center", va="center", fontsize=8,
+                        color="w" if c < np.nanmean(cells) else "k")
+        else:
+            im = ax.scatter(xs * xscale, ys * yscale, c=vs * vscale, cmap="viridis")
+        fig.colorbar(im, ax=ax, label=vlabel)
+        ax.set_ylabel(ylabel)
+    ax.set_xlabel(xlabel)
+    ax.set_title(f"{table.attrs.get('test', 'sweep') if hasattr(table, 'attrs') else 'sweep'}: "
+                 f"{vlabel.split(' [')[0]}")
+    if path is not None:
+        path = pathlib.Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path, dpi=120, bbox_inches="tight")
+    return ax
