@@ -12,13 +12,13 @@ import time
 import numpy as np
 
 from jdem.bond import create_bonds
-from jdem.specimen.compaction import _Packing
-from jdem.specimen.container import Specimen, _Container, _vol, _wall_planes
+from jdem.specimen.compaction import Packing
+from jdem.specimen.container import Container, Specimen, particle_volume, wall_planes
 from jdem.state import empty_bonds, make_particles
 from jdem.validate import InputError
 
 
-def _pairs(pos, rad, max_gap):
+def near_pairs(pos, rad, max_gap):
     """All pairs (i < j) with gap |x_i - x_j| - R_i - R_j <= max_gap: i, j, gap (float64)."""
     from scipy.spatial import cKDTree
 
@@ -34,9 +34,9 @@ def _pairs(pos, rad, max_gap):
     return i[order], j[order], gap[order]
 
 
-def _wall_overlap(pos, rad, c: _Container):
+def _wall_overlap(pos, rad, c: Container):
     """Largest overlap of any particle with the container walls [m] (<= 0: none)."""
-    pts, nrm = _wall_planes(c)
+    pts, nrm = wall_planes(c)
     pts, nrm = np.asarray(pts, float), np.asarray(nrm, float)
     dist = np.einsum("wnd,wd->wn", pos[None] - pts[:, None], nrm)
     return float(np.max(rad[None] - dist)) if pos.size else 0.0
@@ -62,7 +62,7 @@ def _coordination_curve(i, j, gap, n, floaters):
     return ts, zbar, gs, pairs
 
 
-def _gap_for(target, i, j, gap, n, floaters, max_gap):
+def gap_for_coordination(target, i, j, gap, n, floaters, max_gap):
     """The gap tolerance (in [0, max_gap]) whose N-bar is closest to ``target``
     (the smallest such); returns (gap_tolerance, N-bar, lowest N-bar, highest N-bar)."""
     ts, zbar, gs, pairs = _coordination_curve(i, j, gap, n, floaters)
@@ -73,7 +73,7 @@ def _gap_for(target, i, j, gap, n, floaters, max_gap):
     return float(min(max(g, 0.0), max_gap)), float(zbar[best]), float(zbar.min()), float(zbar.max())
 
 
-def _handle_floaters(pos, rad, c: _Container, g, mode):
+def _handle_floaters(pos, rad, c: Container, g, mode):
     """Particles with no neighbour within the gap tolerance ``g``: "keep" them,
     "remove" them, or "attach" them: move each along the line to its nearest
     connected neighbour by the gap, so that it touches it.  The move shortens no
@@ -84,7 +84,7 @@ def _handle_floaters(pos, rad, c: _Container, g, mode):
     from scipy.spatial import cKDTree
 
     n = rad.size
-    i, j, _ = _pairs(pos, rad, g)
+    i, j, _ = near_pairs(pos, rad, g)
     deg = np.bincount(i, minlength=n) + np.bincount(j, minlength=n)
     free = np.nonzero(deg == 0)[0]
     if mode == "keep" or free.size == 0:
@@ -96,7 +96,7 @@ def _handle_floaters(pos, rad, c: _Container, g, mode):
     pos = pos.copy()
     connected = deg > 0
     tree = cKDTree(pos)
-    pts, nrm = (np.asarray(a, float) for a in _wall_planes(c))
+    pts, nrm = (np.asarray(a, float) for a in wall_planes(c))
     r_max = float(rad.max())
     touch = 1e-4 * float(rad.mean())  # end in (barely) touching contact: gap -1e-4 r_mean
     moved: list[int] = []
@@ -138,20 +138,22 @@ def _handle_floaters(pos, rad, c: _Container, g, mode):
     return pos[keep], rad[keep], int(free.size), attached, int(np.sum(~keep))
 
 
-def _finish(pk: _Packing, *, seed, density, bond, gap_tolerance, target_coordination,
-            coordination_tolerance, max_gap_tolerance, floaters, overlap_limit,
-            t_start, target_porosity) -> Specimen:
+def finish_specimen(pk: Packing, *, seed, density, bond, gap_tolerance, target_coordination,
+                    coordination_tolerance, max_gap_tolerance, floaters, overlap_limit,
+                    t_start, target_porosity) -> Specimen:
+    """Bond the packing (at ``gap_tolerance``, or at the gap that reaches
+    ``target_coordination``), handle floaters and return the :class:`Specimen`."""
     c = pk.container
     dim = c.dim
     pos, rad = pk.pos, pk.rad
     r_mean0 = float(rad.mean())
     if target_coordination is not None:
         max_gap = 0.5 * r_mean0 if max_gap_tolerance is None else float(max_gap_tolerance)
-        i, j, gap = _pairs(pos, rad, max_gap)
-        g, zbar, z_lo, z_hi = _gap_for(float(target_coordination), i, j, gap, rad.size,
-                                       floaters, max_gap)
+        i, j, gap = near_pairs(pos, rad, max_gap)
+        g, zbar, z_lo, z_hi = gap_for_coordination(float(target_coordination), i, j, gap,
+                                                   rad.size, floaters, max_gap)
         if abs(zbar - target_coordination) > coordination_tolerance:
-            phi = 1.0 - float(np.sum(_vol(rad, dim))) / c.volume
+            phi = 1.0 - float(np.sum(particle_volume(rad, dim))) / c.volume
             hint = ("a looser packing (higher target_porosity)" if target_coordination < z_lo
                     else "a denser packing (lower target_porosity) or a larger max_gap_tolerance")
             raise InputError(
@@ -171,7 +173,7 @@ def _finish(pk: _Packing, *, seed, density, bond, gap_tolerance, target_coordina
     pos = np.asarray(particles.pos, np.float64)
     rad = np.asarray(particles.radius, np.float64)
     r_mean = float(rad.mean())
-    i, j, gap = _pairs(pos, rad, g)
+    i, j, gap = near_pairs(pos, rad, g)
     if bond:
         bonds = create_bonds(particles, dim, gap_tolerance=g)
         n_pairs = int(np.sum(np.asarray(bonds.valid)))
@@ -185,12 +187,12 @@ def _finish(pk: _Packing, *, seed, density, bond, gap_tolerance, target_coordina
             f"target_coordination = {target_coordination!r} was missed: N-bar = "
             f"{coordination:.3f} after bonding with gap_tolerance {g:.4g} m; try another seed "
             f"or a larger coordination_tolerance")
-    _, _, ov = _pairs(pos, rad, 0.0)
+    _, _, ov = near_pairs(pos, rad, 0.0)
     overlap = max(0.0, float(-ov.min()) if ov.size else 0.0, _wall_overlap(pos, rad, c))
     if overlap > overlap_limit * r_mean:
         raise RuntimeError(f"specimen: largest overlap {overlap:.4g} m = {overlap / r_mean:.4g} "
                            f"x the mean radius exceeds overlap_limit = {overlap_limit}")
-    porosity = 1.0 - float(np.sum(_vol(rad, dim))) / c.volume
+    porosity = 1.0 - float(np.sum(particle_volume(rad, dim))) / c.volume
     info = dict(pk.info)
     info.update(
         shape=c.shape, size=c.size, n_particles=n, r_min=float(rad.min()), r_max=float(rad.max()),

@@ -10,9 +10,10 @@ import time
 
 import numpy as np
 
-from jdem.specimen.bonding import _finish, _gap_for, _pairs
-from jdem.specimen.compaction import _compact
-from jdem.specimen.container import MIN_POROSITY, Specimen, _check, _container, _finite, _vol
+from jdem.specimen.bonding import finish_specimen, gap_for_coordination, near_pairs
+from jdem.specimen.compaction import compact
+from jdem.specimen.container import (MIN_POROSITY, Specimen, check_inputs, finite_number,
+                                     make_container, particle_volume)
 from jdem.validate import InputError
 
 
@@ -41,13 +42,13 @@ def generate(shape, size, r_min, r_max, *, seed=0, density=2500.0, target_porosi
     max_steps        give up (RuntimeError) after this many steps (default: ample)
     """
     t_start = time.perf_counter()
-    c = _container(shape, size)
-    r_min, r_max = _check(c, r_min, r_max, density, target_porosity, target_coordination,
+    c = make_container(shape, size)
+    r_min, r_max = check_inputs(c, r_min, r_max, density, target_porosity, target_coordination,
                           gap_tolerance, overlap_limit, seed, floaters)
     _check_steps(stage_steps, max_steps, coordination_tolerance, max_gap_tolerance)
-    pk = _compact(c, r_min, r_max, int(seed), target_porosity, overlap_limit, density,
+    pk = compact(c, r_min, r_max, int(seed), target_porosity, overlap_limit, density,
                   int(stage_steps), max_steps, progress)
-    return _finish(pk, seed=seed, density=density, bond=bond, gap_tolerance=gap_tolerance,
+    return finish_specimen(pk, seed=seed, density=density, bond=bond, gap_tolerance=gap_tolerance,
                    target_coordination=target_coordination,
                    coordination_tolerance=coordination_tolerance,
                    max_gap_tolerance=max_gap_tolerance, floaters=floaters,
@@ -61,10 +62,10 @@ def _check_steps(stage_steps, max_steps, coordination_tolerance, max_gap_toleran
     if max_steps is not None and (isinstance(max_steps, bool) or
                                   not isinstance(max_steps, (int, np.integer)) or max_steps < 1):
         raise InputError(f"max_steps must be a positive integer or None, got {max_steps!r}")
-    tol = _finite("coordination_tolerance", coordination_tolerance)
+    tol = finite_number("coordination_tolerance", coordination_tolerance)
     if tol <= 0:
         raise InputError(f"coordination_tolerance must be > 0, got {tol!r}")
-    if max_gap_tolerance is not None and _finite("max_gap_tolerance", max_gap_tolerance) <= 0:
+    if max_gap_tolerance is not None and finite_number("max_gap_tolerance", max_gap_tolerance) <= 0:
         raise InputError(f"max_gap_tolerance must be > 0, got {max_gap_tolerance!r}")
 
 
@@ -87,21 +88,21 @@ def specimen_for_coordination(target_N, shape, size, r_min, r_max, *, tolerance=
     ``info["attempts"]`` lists (porosity, lowest N-bar, highest N-bar) per packing.
     """
     t_start = time.perf_counter()
-    c = _container(shape, size)
+    c = make_container(shape, size)
     z_top = 6.0 if c.dim == 2 else 12.0
-    z_target = _finite("target_N", target_N)
+    z_target = finite_number("target_N", target_N)
     if not 0.0 < z_target < z_top:
         raise InputError(f"target_N must lie in (0, {z_top}) in {c.dim}D, got {target_N!r}")
-    r_min, r_max = _check(c, r_min, r_max, density, target_porosity, None, None,
+    r_min, r_max = check_inputs(c, r_min, r_max, density, target_porosity, None, None,
                           overlap_limit, seed, floaters)
-    tol = _finite("tolerance", tolerance)
+    tol = finite_number("tolerance", tolerance)
     if tol <= 0:
         raise InputError(f"tolerance must be > 0, got {tolerance!r}")
     _check_steps(stage_steps, max_steps, tol, max_gap_tolerance)
     if isinstance(max_attempts, bool) or not isinstance(max_attempts, (int, np.integer)) \
             or max_attempts < 1:
         raise InputError(f"max_attempts must be a positive integer, got {max_attempts!r}")
-    step = _finite("porosity_step", porosity_step)
+    step = finite_number("porosity_step", porosity_step)
     if not 0.0 < step < 0.5:
         raise InputError(f"porosity_step must lie in (0, 0.5), got {porosity_step!r}")
     max_gap_rel = None if max_gap_tolerance is None else float(max_gap_tolerance)
@@ -114,7 +115,7 @@ def specimen_for_coordination(target_N, shape, size, r_min, r_max, *, tolerance=
             break
         tried.add(key)
         try:
-            pk = _compact(c, r_min, r_max, int(seed), phi, overlap_limit, density,
+            pk = compact(c, r_min, r_max, int(seed), phi, overlap_limit, density,
                           int(stage_steps), max_steps, progress)
         except InputError:
             if phi is None:
@@ -122,12 +123,13 @@ def specimen_for_coordination(target_N, shape, size, r_min, r_max, *, tolerance=
             phi = None  # that porosity jammed: the densest packing is the next best
             continue
         max_gap = 0.5 * float(pk.rad.mean()) if max_gap_rel is None else max_gap_rel
-        i, j, gap = _pairs(pk.pos, pk.rad, max_gap)
-        _, zbar, z_lo, z_hi = _gap_for(z_target, i, j, gap, pk.rad.size, floaters, max_gap)
-        phi_reached = 1.0 - float(np.sum(_vol(pk.rad, c.dim))) / c.volume
+        i, j, gap = near_pairs(pk.pos, pk.rad, max_gap)
+        _, zbar, z_lo, z_hi = gap_for_coordination(z_target, i, j, gap, pk.rad.size, floaters,
+                                                   max_gap)
+        phi_reached = 1.0 - float(np.sum(particle_volume(pk.rad, c.dim))) / c.volume
         attempts.append((phi_reached, z_lo, z_hi))
         if abs(zbar - z_target) <= tol:
-            sp = _finish(pk, seed=seed, density=density, bond=bond, gap_tolerance=None,
+            sp = finish_specimen(pk, seed=seed, density=density, bond=bond, gap_tolerance=None,
                          target_coordination=z_target, coordination_tolerance=tol,
                          max_gap_tolerance=max_gap, floaters=floaters,
                          overlap_limit=overlap_limit, t_start=t_start,

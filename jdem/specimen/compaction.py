@@ -17,7 +17,8 @@ from jdem import neighbors
 from jdem.kinematics import dot, safe_norm
 from jdem.measure import kinetic_energy
 from jdem.simulate import run
-from jdem.specimen.container import RSA_FRACTION, _Container, _draw_radii, _rsa, _vol, _wall_planes
+from jdem.specimen.container import (RSA_FRACTION, Container, draw_radii, particle_volume,
+                                     random_sequential_addition, wall_planes)
 from jdem.state import Config, State, empty_bonds, make_params, make_particles, make_walls
 from jdem.timestep import nominal_critical_timestep
 from jdem.validate import InputError
@@ -50,7 +51,7 @@ def _bucket(n):
     return int(math.ceil(n / _PAD) * _PAD)
 
 
-def _setup(c: _Container, rad, pos0, s0, density, r_lo, r_hi):
+def _setup(c: Container, rad, pos0, s0, density, r_lo, r_hi):
     """State, params and config for the compaction of particles ``rad`` placed at
     ``pos0`` with radii ``rad * s0``; the grid is sized for the final radii."""
     dim = c.dim
@@ -60,7 +61,7 @@ def _setup(c: _Container, rad, pos0, s0, density, r_lo, r_hi):
     # compilation serves every seed)
     r_mean = 0.5 * (r_lo + r_hi)
     r_max, r_min = r_hi, r_lo
-    m0 = float(np.mean(density)) * float(_vol(r_mean, dim))  # uniform inertial mass
+    m0 = float(np.mean(density)) * float(particle_volume(r_mean, dim))  # uniform inertial mass
     p = make_particles(pos0, rad * s0, capacity=cap)
     valid = np.array(p.valid)
     mass = jnp.where(p.valid, m0, 1.0).astype(p.mass.dtype)
@@ -70,10 +71,10 @@ def _setup(c: _Container, rad, pos0, s0, density, r_lo, r_hi):
     cell = 2.0 * r_max + skin
     origin = tuple(float(v) for v in c.lo - cell)
     gshape = tuple(int(math.ceil((h - l) / cell)) + 2 for l, h in zip(c.lo, c.hi))
-    k = int(math.ceil(cell**dim * 0.9 / float(_vol(r_min, dim)))) + 3
+    k = int(math.ceil(cell**dim * 0.9 / float(particle_volume(r_min, dim)))) + 3
     cfg = Config(dim=dim, skin=skin, cell_size=cell, grid_origin=origin, grid_shape=gshape,
                  max_per_cell=k)
-    pts, nrm = _wall_planes(c)
+    pts, nrm = wall_planes(c)
     walls = make_walls(pts, nrm, n_particles=cap)
     # as jdem.simulate.make_state, but the neighbour list has room for a dense packing
     # and its capacity depends only on the padded particle capacity, so that every
@@ -97,26 +98,31 @@ def _setup(c: _Container, rad, pos0, s0, density, r_lo, r_hi):
     return state, params, cfg, valid
 
 
-class _Packing(NamedTuple):
+class Packing(NamedTuple):
+    """A compacted packing (host arrays): centres ``pos`` (N, d) [m], radii ``rad``
+    (N,) [m], its ``container`` and the compaction ``info``."""
+
     pos: np.ndarray
     rad: np.ndarray
-    container: _Container
+    container: Container
     info: dict
 
 
-def _compact(c: _Container, r_min, r_max, seed, target_porosity, overlap_limit, density,
-             stage_steps, max_steps, progress) -> _Packing:
+def compact(c: Container, r_min, r_max, seed, target_porosity, overlap_limit, density,
+            stage_steps, max_steps, progress) -> Packing:
+    """Draw radii, place them and grow them in the rigid container until the target
+    porosity (the densest state when it is None) with overlaps below the limit."""
     t_start = time.perf_counter()
     dim = c.dim
     rng = np.random.default_rng(seed)
     dense = target_porosity is None
     phi0 = DENSE_START[dim] if dense else float(target_porosity)
-    rad = _draw_radii(rng, r_min, r_max, dim, (1.0 - phi0) * c.volume)
+    rad = draw_radii(rng, r_min, r_max, dim, (1.0 - phi0) * c.volume)
     n = rad.size
     r_mean = float(rad.mean())
-    fraction = float(np.sum(_vol(rad, dim))) / c.volume
+    fraction = float(np.sum(particle_volume(rad, dim))) / c.volume
     s0 = min(0.9, (RSA_FRACTION[dim] / fraction) ** (1.0 / dim))
-    pos0 = _rsa(rng, rad * s0, c)
+    pos0 = random_sequential_addition(rng, rad * s0, c)
     state, params, cfg, valid = _setup(c, rad, pos0, s0, density, r_min, r_max)
     cap = valid.size
     rad_cap = np.zeros(cap)
@@ -184,7 +190,8 @@ def _compact(c: _Container, r_min, r_max, seed, target_porosity, overlap_limit, 
                     state = set_radii(state, s)
                     continue
                 if not dense:
-                    phi = 1.0 - float(np.sum(_vol(rad[valid[:n]] * s_ok, dim))) / c.volume
+                    solid = float(np.sum(particle_volume(rad[valid[:n]] * s_ok, dim)))
+                    phi = 1.0 - solid / c.volume
                     raise InputError(
                         f"target_porosity = {target_porosity!r} is out of the reachable range "
                         f"for this container and size distribution: the packing jammed at "
@@ -194,13 +201,13 @@ def _compact(c: _Container, r_min, r_max, seed, target_porosity, overlap_limit, 
                 # densest mode: thin the jammed packing out by the volume it still has to
                 # gain (plus 0.5 %), choosing particles at random, and grow on
                 idx = np.nonzero(valid)[0]
-                vols = _vol(rad_cap[idx], dim)
+                vols = particle_volume(rad_cap[idx], dim)
                 frac = (1.0 - s**dim) + 0.005
                 order = rng.permutation(idx.size)
                 k = int(np.searchsorted(np.cumsum(vols[order]), frac * vols.sum())) + 1
                 valid[idx[order[:k]]] = False
                 n_removed += k
-                fraction = float(np.sum(_vol(rad_cap[valid], dim))) / c.volume
+                fraction = float(np.sum(particle_volume(rad_cap[valid], dim))) / c.volume
                 hold, hold_hist = 0, []
                 state = set_radii(state, s)
             if steps >= max_steps:
@@ -217,4 +224,4 @@ def _compact(c: _Container, r_min, r_max, seed, target_porosity, overlap_limit, 
                 scale0=s0, n_removed_jammed=n_removed, n_backoffs=backoffs,
                 n_builds=int(state.contacts.n_builds), dt=float(params.dt),
                 contact_z=z, n_drawn=n)
-    return _Packing(pos, rad[keep], c, info)
+    return Packing(pos, rad[keep], c, info)

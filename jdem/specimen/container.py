@@ -35,7 +35,11 @@ class Specimen(NamedTuple):
     info: dict
 
 
-class _Container(NamedTuple):
+class Container(NamedTuple):
+    """The checked container: ``shape``, ``dim``, ``size`` [m], bounding box
+    ``lo`` / ``hi`` (d,) [m], ``volume`` [m^2 x 1 m or m^3], and for a disc its
+    ``centre`` (2,) and ``radius`` [m] (else None)."""
+
     shape: str
     dim: int
     size: tuple
@@ -46,7 +50,8 @@ class _Container(NamedTuple):
     radius: float | None
 
 
-def _finite(name, value):
+def finite_number(name, value):
+    """``value`` as a finite float, else an InputError naming ``name``."""
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -56,7 +61,9 @@ def _finite(name, value):
     return v
 
 
-def _container(shape, size) -> _Container:
+def make_container(shape, size) -> Container:
+    """The :class:`Container` of ``shape`` (one of :data:`SHAPES`) and ``size`` [m],
+    checked."""
     if not isinstance(shape, str) or shape not in SHAPES:
         raise InputError(f"shape must be one of {SHAPES}, got {shape!r}")
     dim = _DIM[shape]
@@ -66,22 +73,24 @@ def _container(shape, size) -> _Container:
         what = {"rectangle": "(width, height)", "box": "(width, depth, height)",
                 "disc": "the diameter (one number)"}[shape]
         raise InputError(f"size of a {shape!r} must be {what}, got {size!r}")
-    vals = tuple(_finite(f"size[{k}]" if want > 1 else "size", v) for k, v in enumerate(sz))
+    vals = tuple(finite_number(f"size[{k}]" if want > 1 else "size", v) for k, v in enumerate(sz))
     for k, v in enumerate(vals):
         if v <= 0:
             raise InputError(f"{f'size[{k}]' if want > 1 else 'size'} must be > 0, got {v!r}")
     if shape == "disc":
         d = vals[0]
-        return _Container(shape, 2, vals, np.zeros(2), np.full(2, d), math.pi * d * d / 4,
+        return Container(shape, 2, vals, np.zeros(2), np.full(2, d), math.pi * d * d / 4,
                           np.full(2, d / 2), d / 2)
     hi = np.asarray(vals, float)
-    return _Container(shape, dim, vals, np.zeros(dim), hi, float(np.prod(hi)), None, None)
+    return Container(shape, dim, vals, np.zeros(dim), hi, float(np.prod(hi)), None, None)
 
 
-def _check(c: _Container, r_min, r_max, density, target_porosity, target_coordination,
-           gap_tolerance, overlap_limit, seed, floaters="attach"):
-    r_min = _finite("r_min", r_min)
-    r_max = _finite("r_max", r_max)
+def check_inputs(c: Container, r_min, r_max, density, target_porosity, target_coordination,
+                 gap_tolerance, overlap_limit, seed, floaters="attach"):
+    """Check the inputs of :func:`jdem.specimen.generate`; InputError naming the
+    field and the value."""
+    r_min = finite_number("r_min", r_min)
+    r_max = finite_number("r_max", r_max)
     if r_min <= 0:
         raise InputError(f"r_min must be > 0, got {r_min!r}")
     if r_max < r_min:
@@ -93,7 +102,7 @@ def _check(c: _Container, r_min, r_max, density, target_porosity, target_coordin
     if np.any(~np.isfinite(np.asarray(density, float))) or np.any(np.asarray(density, float) <= 0):
         raise InputError(f"density must be > 0, got {density!r}")
     if target_porosity is not None:
-        phi = _finite("target_porosity", target_porosity)
+        phi = finite_number("target_porosity", target_porosity)
         if not 0.0 < phi < 1.0:
             raise InputError(f"target_porosity must lie in (0, 1), got {phi!r}")
         if phi < MIN_POROSITY[c.dim]:
@@ -102,7 +111,7 @@ def _check(c: _Container, r_min, r_max, density, target_porosity, target_coordin
                 f"{'discs' if c.dim == 2 else 'spheres'} without overlap are not denser than "
                 f"porosity ~{MIN_POROSITY[c.dim]} (leave target_porosity=None for the densest)")
     if target_coordination is not None:
-        z = _finite("target_coordination", target_coordination)
+        z = finite_number("target_coordination", target_coordination)
         top = 6.0 if c.dim == 2 else 12.0
         if not 0.0 < z < top:
             raise InputError(f"target_coordination must lie in (0, {top}) in {c.dim}D, got {z!r}")
@@ -110,10 +119,10 @@ def _check(c: _Container, r_min, r_max, density, target_porosity, target_coordin
             raise InputError("give either gap_tolerance or target_coordination, not both "
                              f"(gap_tolerance = {gap_tolerance!r})")
     if gap_tolerance is not None:
-        g = _finite("gap_tolerance", gap_tolerance)
+        g = finite_number("gap_tolerance", gap_tolerance)
         if g < 0:
             raise InputError(f"gap_tolerance must be >= 0, got {g!r}")
-    lim = _finite("overlap_limit", overlap_limit)
+    lim = finite_number("overlap_limit", overlap_limit)
     if not 0.0 < lim < 0.5:
         raise InputError(f"overlap_limit (a fraction of the mean radius) must lie in (0, 0.5), "
                          f"got {lim!r}")
@@ -124,7 +133,8 @@ def _check(c: _Container, r_min, r_max, density, target_porosity, target_coordin
     return r_min, r_max
 
 
-def _vol(r, dim):
+def particle_volume(r, dim):
+    """Area pi r^2 (2D, unit thickness) or volume 4/3 pi r^3 (3D) of radii ``r``."""
     r = np.asarray(r, float)
     return np.pi * r**2 if dim == 2 else 4.0 / 3.0 * np.pi * r**3
 
@@ -136,15 +146,15 @@ def _mean_vol(r_min, r_max, dim):
     return np.pi * (a + b) * (a * a + b * b) / 3.0
 
 
-def _draw_radii(rng, r_min, r_max, dim, solid):
+def draw_radii(rng, r_min, r_max, dim, solid):
     """Uniform radii until their total area / volume is closest to ``solid``."""
     n_guess = int(1.2 * solid / _mean_vol(r_min, r_max, dim)) + 16
     rad = rng.uniform(r_min, r_max, size=n_guess)
-    cum = np.cumsum(_vol(rad, dim))
+    cum = np.cumsum(particle_volume(rad, dim))
     while cum[-1] < solid:  # (only for extreme draws) draw more, deterministically
         more = rng.uniform(r_min, r_max, size=n_guess)
         rad = np.concatenate([rad, more])
-        cum = np.cumsum(_vol(rad, dim))
+        cum = np.cumsum(particle_volume(rad, dim))
     k = int(np.searchsorted(cum, solid))  # cum[k] >= solid > cum[k-1]
     if k > 0 and solid - cum[k - 1] < cum[k] - solid:
         k -= 1
@@ -152,7 +162,7 @@ def _draw_radii(rng, r_min, r_max, dim, solid):
     return rad[:n].copy()
 
 
-def _wall_planes(c: _Container):
+def wall_planes(c: Container):
     """Points on and inward normals of the container's walls."""
     if c.shape == "rectangle":
         w, h = c.size
@@ -168,7 +178,7 @@ def _wall_planes(c: _Container):
     return c.centre + c.radius * math.cos(math.pi / m) * out, -out
 
 
-def _rsa(rng, rad, c: _Container, max_tries=20000, batch=8):
+def random_sequential_addition(rng, rad, c: Container, max_tries=20000, batch=8):
     """Random sequential addition of non-overlapping particles of radii ``rad``
     inside the container (largest first; a cell grid keeps it O(N))."""
     n = rad.size
