@@ -14,17 +14,29 @@ import numpy as np
 from jdem.validate import InputError
 
 
+def _figure(figsize, *, pyplot=False):
+    """A new figure: an Agg figure that leaves matplotlib's global backend alone
+    (for PNG files), or with ``pyplot`` one that pyplot manages (shown inline in
+    a notebook)."""
+    if pyplot:
+        import matplotlib.pyplot as plt
+
+        return plt.figure(figsize=figsize)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize)
+    FigureCanvasAgg(fig)
+    return fig
+
+
 # ----------------------------------------------------------------------------- lab tests
 def plot_single_bond(hist, analytic, title, xlabel, ylabel, path):
     """A single-bond test's stress against strain (``hist["strain"]``,
     ``hist["stress"]`` [Pa]) beside the analytic curve ``analytic`` [Pa] (002 eq 6–9),
     written as PNG to ``path``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5.5, 4))
+    fig = _figure((5.5, 4))
+    ax = fig.subplots()
     ax.plot(hist["strain"] * 100, hist["stress"] / 1e6, lw=2, label="jdem")
     ax.plot(hist["strain"] * 100, analytic / 1e6, "k--", lw=1, label="theory (002 eq 6–9)")
     ax.set_xlabel(xlabel)
@@ -34,22 +46,17 @@ def plot_single_bond(hist, analytic, title, xlabel, ylabel, path):
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def plot_ucs(hist, kappas, path):
     """UCS curves, one per softening strain in ``kappas``: axial stress [Pa] and
     fracture degree against axial strain (``hist`` with (B, K) or (K,) arrays
     ``axial_strain``, ``axial_stress``, ``fracture_degree``), written as PNG to ``path``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     strain = np.atleast_2d(hist["axial_strain"])
     stress = np.atleast_2d(hist["axial_stress"])
     fd = np.atleast_2d(hist["fracture_degree"])
-    fig, ax = plt.subplots(figsize=(6, 4.2))
+    fig = _figure((6, 4.2))
+    ax = fig.subplots()
     ax2 = ax.twinx()
     for b, k in enumerate(kappas):
         line, = ax.plot(strain[b] * 1e6, stress[b] / 1e6, lw=1.6, label=f"κ = {k * 100:g} %")
@@ -62,22 +69,17 @@ def plot_ucs(hist, kappas, path):
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 # ----------------------------------------------------------------------------- calibration
 def plot_calibration(res, path=None, *, true_values=None):
-    """The report of a :class:`jdem.calibrate.CalibrationResult` ``res``, four panels: target, start and fitted curves; the fit's residual stress;
+    """The report of a :class:`jdem.calibrate.CalibrationResult` ``res``, four
+    panels: target, start and fitted curves; the fit's residual stress;
     the loss history; the fitted values with their 95 % intervals and the
     correlation matrix.  Written as PNG when ``path`` is given; returns the figure."""
-    import matplotlib
-
-    if path is not None:
-        matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     c = res.curves
-    fig, axes = plt.subplots(2, 2, figsize=(11, 8))
+    fig = _figure((11, 8), pyplot=path is None)
+    axes = fig.subplots(2, 2)
     ax, rx, bx, cx = axes.ravel()
     if "target_strain" in c:
         ax.plot(c["target_strain"] * 100, c["target_stress"] / 1e6, "k-", lw=2.5,
@@ -130,7 +132,6 @@ def plot_calibration(res, path=None, *, true_values=None):
     fig.tight_layout()
     if path is not None:
         fig.savefig(path, dpi=110)
-        plt.close(fig)
     return fig
 
 
@@ -183,12 +184,7 @@ def plot_sweep(table, x, y=None, value="peak_stress", ax=None, path=None):
     xs = _column(table, x, "x")
     vs = _column(table, value, "value")
     if ax is None:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-
-        fig = Figure(figsize=(5.5, 4.2))
-        FigureCanvasAgg(fig)
-        ax = fig.add_subplot()
+        ax = _figure((5.5, 4.2)).add_subplot()
     fig = ax.figure
     vlabel, vscale = _label(value)
     xlabel, xscale = _label(x)

@@ -20,7 +20,8 @@ from jdem.simulate import make_state, run
 from jdem.specimen import subset
 from jdem.state import Params
 from jdem.validate import InputError, require_positive
-from jdem.waves.boundaries import BoundarySet, Conditions, activate, apply_conditions, boundary_particles, exposed_particles, make_boundary
+from jdem.waves.boundaries import (BoundarySet, Conditions, activate, apply_conditions,
+                                   boundary_particles, exposed_particles, make_boundary)
 from jdem.waves.media import stable_dt, wave_params
 from jdem.waves.monitors import Monitors, slice_groups
 from jdem.waves.pulses import cosine_pulse, fix_driven, incident_wave, make_driven

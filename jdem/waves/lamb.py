@@ -14,8 +14,10 @@ import numpy as np
 from jdem.simulate import make_state, run
 from jdem.state import Params
 from jdem.validate import InputError, require_positive
-from jdem.waves.boundaries import Conditions, activate, apply_conditions, boundary_particles, make_boundary, viscoelastic_stiffness
-from jdem.waves.media import contact_modulus, lattice, square_density, square_packing, stable_dt, wave_params
+from jdem.waves.boundaries import (Conditions, activate, apply_conditions, boundary_particles,
+                                   make_boundary, viscoelastic_stiffness)
+from jdem.waves.media import (contact_modulus, lattice, square_density, square_packing, stable_dt,
+                              wave_params)
 from jdem.waves.monitors import Monitors, monitor_groups
 from jdem.waves.pulses import lamb_pulse, make_point_load
 
