@@ -9,7 +9,9 @@ Citations ("000 eq 4-6") refer to the documents listed in REFERENCES.md.
 
 Unlike particles: stiffnesses (and for Hertz the moduli) are mixed by the
 harmonic mean k12 = 2 k1 k2 / (k1 + k2) (000 eq 4-9); Poisson ratios by the
-mean; friction by the smaller coefficient.
+mean; friction by ``Config.friction_mixing`` (:func:`pair_friction`): the smaller
+coefficient (default), their mean, their geometric mean, or a per-pair table over
+material indices (walls take part through their material).
 
 The relative velocity at the contact point includes particle spin
 (000 eq 4-11..4-15 in 2D, the same with cross products in 3D).  The tangential
@@ -23,10 +25,11 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
+from jdem.validate import InputError
 from jdem.kinematics import (components, computed_once, cross_r_f, dot, floored_norm,
                              project_tangent, relative_velocity, rotate_into_plane, safe_norm,
                              same_kind, scale, segment_add)
-from jdem.state import Config, Contacts, Params, Particles
+from jdem.state import FRICTION_RULE_NAMES, Config, Contacts, Params, Particles
 
 
 def harmonic_mix(a, b):
@@ -37,6 +40,33 @@ def harmonic_mix(a, b):
 def mean_mix(a, b):
     """Poisson ratios of unlike particles: the mean."""
     return 0.5 * (a + b)
+
+
+def geometric_mix(a, b):
+    """sqrt(a b)."""
+    return jnp.sqrt(a * b)
+
+
+#: the mixing rules of ``Config.friction_mixing`` by name
+FRICTION_RULES = dict(zip(FRICTION_RULE_NAMES, (jnp.minimum, mean_mix, geometric_mix)))
+
+
+def pair_friction(params: Params, config: Config, mat_a, mat_b):
+    """Friction coefficient of every pair of materials ``mat_a``, ``mat_b`` (...).
+
+    ``config.friction_mixing`` is a rule of :data:`FRICTION_RULES` applied to
+    ``params.friction`` (differentiable with respect to it), or a symmetric
+    (M, M) table of coefficients over the M materials (a fixed property of the
+    model: ``params.friction`` is then not used)."""
+    rule = config.friction_mixing
+    if isinstance(rule, str):
+        return pair_property(params.friction, mat_a, mat_b, FRICTION_RULES[rule])
+    m = params.friction.shape[-1]
+    if len(rule) != m:
+        raise InputError(f"Config.friction_mixing is a {len(rule)} x {len(rule)} table but "
+                         f"Params has {m} materials")
+    table = jnp.asarray(rule, params.friction.dtype)
+    return table[0, 0] if m == 1 else table.reshape(-1)[mat_a * m + mat_b]
 
 
 def pair_property(table, mat_a, mat_b, mix):
@@ -166,7 +196,7 @@ def contact_forces(contacts: Contacts, particles: Particles, params: Params, con
         m_eff = p.mass[i] * p.mass[j] / (p.mass[i] + p.mass[j])
         fn_total = jnp.where(touching, jnp.maximum(fn + dashpot(kn, m_eff, approach, params), 0.0),
                              0.0)
-        mu = pair_property(params.friction, p.material[i], p.material[j], jnp.minimum)
+        mu = pair_friction(params, config, p.material[i], p.material[j])
         shear = tangential_update(components(contacts.shear), normal, v_t, kt, fn, mu, params.dt,
                                   touching)
         return normal, shear, fn_total, a_i, a_j, touching

@@ -237,6 +237,7 @@ class Params(NamedTuple):
 
 
 CONTACT_MODELS = ("linear", "hertz")
+FRICTION_RULE_NAMES = ("smaller", "mean", "geometric")  # jdem.contact.FRICTION_RULES
 
 
 @dataclasses.dataclass(frozen=True)
@@ -251,6 +252,10 @@ class Config:
                       clamped into border cells, which stays correct)
     grid_shape        number of cells per axis
     max_per_cell      K, particles a cell can hold
+    friction_mixing   friction of unlike materials (walls included, through their
+                      material): "smaller" (default), "mean", "geometric", or a
+                      symmetric M x M table (tuple of tuples) of coefficients,
+                      which replaces ``Params.friction`` (not differentiated)
 
     The neighbour-list capacity C is the length of the ``Contacts`` arrays
     (a property of the state, not of the configuration).
@@ -263,9 +268,16 @@ class Config:
     grid_origin: tuple = (0.0, 0.0)
     grid_shape: tuple = (1, 1)
     max_per_cell: int = 8
+    friction_mixing: str | tuple = "smaller"
 
     def __post_init__(self):
-        check_config(self, CONTACT_MODELS)
+        if not isinstance(self.friction_mixing, str):   # a table: hashable tuples of floats
+            try:
+                table = tuple(tuple(float(v) for v in row) for row in self.friction_mixing)
+            except (TypeError, ValueError):
+                table = self.friction_mixing
+            object.__setattr__(self, "friction_mixing", table)
+        check_config(self, CONTACT_MODELS, FRICTION_RULE_NAMES)
 
     @property
     def n_cells(self) -> int:

@@ -191,9 +191,9 @@ def check_materials(state, params):
                 f"material{'s' if m != 1 else ''} (indices 0 to {m - 1})")
 
 
-def check_config(config, contact_models):
+def check_config(config, contact_models, friction_rules):
     """The fields of a :class:`jdem.state.Config`; ``contact_models``: the names
-    of the contact laws."""
+    of the contact laws; ``friction_rules``: the names of the friction mixing rules."""
     if config.dim not in (2, 3):
         raise InputError(f"Config.dim must be 2 or 3, got {config.dim!r}")
     if config.contact_model not in contact_models:
@@ -212,6 +212,22 @@ def check_config(config, contact_models):
         v = float(getattr(config, name))
         if not np.isfinite(v) or v <= 0:
             raise InputError(f"Config.{name} must be a positive finite length, got {v!r}")
+    rule = config.friction_mixing
+    if isinstance(rule, str):
+        if rule not in friction_rules:
+            raise InputError(f"Config.friction_mixing must be one of {tuple(friction_rules)} "
+                             f"or an M x M table, got {rule!r}")
+    else:
+        try:
+            table = np.asarray(rule, dtype=np.float64)
+        except (TypeError, ValueError):
+            table = np.zeros((0,))
+        if table.ndim != 2 or table.shape[0] != table.shape[1] or table.shape[0] < 1:
+            raise InputError(f"Config.friction_mixing table must be square (M x M), got {rule!r}")
+        if not np.all(np.isfinite(table)) or np.any(table < 0) or \
+                not np.array_equal(table, table.T):
+            raise InputError(f"Config.friction_mixing table must be symmetric, finite and "
+                             f">= 0, got {rule!r}")
 
 
 def check_params(params, dim=None):

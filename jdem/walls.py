@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from jdem.contact import dashpot, normal_law, pair_property, tangential_update
+from jdem.contact import dashpot, normal_law, pair_friction, tangential_update
 from jdem.kinematics import components, computed_once, cross_r_f, cross_w_r, dot, scale
 from jdem.state import Config, Params, Particles, Walls
 
@@ -67,7 +67,7 @@ def wall_forces(walls: Walls, particles: Particles, params: Params, config: Conf
         v_t = tuple(v + approach * n for v, n in zip(v_rel, normal))
         fn_total = jnp.where(touching, jnp.maximum(fn + dashpot(kn, p.mass[None], approach, params),
                                                    0.0), 0.0)
-        mu = pair_property(params.friction, p.material[None], walls.material[:, None], jnp.minimum)
+        mu = pair_friction(params, config, p.material[None], walls.material[:, None])
         shear = tangential_update(components(walls.shear), normal, v_t, kt, fn, mu, params.dt,
                                   touching)
         return arm, shear, fn_total, touching, jnp.where(touching, kn, 0.0)

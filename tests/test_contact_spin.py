@@ -176,14 +176,17 @@ IMPACT_STEPS = 720         # 2 steps of approach, the contact, and some free fli
 IMPACT_VT, IMPACT_VN = 0.5, 0.2  # tangential and normal impact speeds [m/s]
 
 
-def _impact(dim, body, params, material=0, surface_material=0):
+def _impact(dim, body, params, material=0, surface_material=0, mixing=None):
     """An oblique impact without initial spin; returns (final velocity, final spin,
-    final height of the centre) of the moving particle."""
+    final height of the centre) of the moving particle.  ``mixing``: the
+    ``Config.friction_mixing`` (default: the default rule)."""
     vel = IMPACT_VT * _tangent(dim) - IMPACT_VN * _up(dim)
     gap = 2.5 * IMPACT_VN * IMPACT_DT
     spin = np.zeros(() if dim == 2 else 3)
     state, cfg, k = _state(dim, body, y=R + gap, vel=vel, spin=spin, material=material,
                            surface_material=surface_material)
+    if mixing is not None:
+        cfg = cfg.replace(friction_mixing=mixing)
     h = _run(state, params, cfg, IMPACT_STEPS // BLOCK, BLOCK, k)
     return h["vel"][-1], h["angvel"][-1], h["pos"][-1][1]
 
@@ -289,6 +292,40 @@ def test_unlike_friction_is_the_smaller_coefficient(order, body):
     err_t, err_w = _check_sliding_impact(2, 0.1, *_impact(2, body, params, mover, surface))
     assert err_t < _tol(body, 1e-12, 2e-5)
     assert err_w < 1e-6
+
+
+@pytest.mark.parametrize("body", BODIES)
+@pytest.mark.parametrize("mixing, mu", [("mean", 0.25), ("geometric", 0.2),
+                                        (((0.1, 0.15), (0.15, 0.4)), 0.15)])
+def test_friction_mixing_rule_can_be_chosen(mixing, mu, body):
+    """``Config.friction_mixing``: the same sliding impact of mu = 0.4 on
+    mu = 0.1 gives J_t / J_n = the mean 0.25, the geometric mean 0.2, or the
+    pair's entry 0.15 of a table (walls through their material index)."""
+    params = _params(2, friction=[0.1, 0.4], dt=IMPACT_DT)
+    err_t, err_w = _check_sliding_impact(2, mu, *_impact(2, body, params, 0, 1, mixing=mixing))
+    assert err_t < _tol(body, 1e-12, 2e-5)
+    assert err_w < 1e-6
+
+
+def test_friction_mixing_is_checked(tmp_path):
+    import jdem.io
+
+    cfg = jdem.Config()
+    with pytest.raises(jdem.InputError, match="friction_mixing"):
+        cfg.replace(friction_mixing="largest")
+    with pytest.raises(jdem.InputError, match="symmetric"):
+        cfg.replace(friction_mixing=((0.1, 0.2), (0.3, 0.4)))
+    with pytest.raises(jdem.InputError, match="square"):
+        cfg.replace(friction_mixing=((0.1, 0.2),))
+    assert cfg.replace(friction_mixing=[[0.5]]).friction_mixing == ((0.5,),)   # hashable
+    table = cfg.replace(friction_mixing=((0.1, 0.2), (0.2, 0.3)))
+    jdem.io.save_run(tmp_path / "c.h5", config=table)
+    assert jdem.io.load_run(tmp_path / "c.h5").config == table                  # round trip
+    p = jdem.make_particles([[0.0, 0.0], [1.5, 0.0]], [1.0, 1.0])
+    state, config = jdem.make_state(p)
+    params = jdem.make_params(dim=2, n_materials=2, dt=1e-3)
+    with pytest.raises(jdem.InputError, match="table"):
+        jdem.advance(state, params, config.replace(friction_mixing=((0.5,),)), 1)
 
 
 # --------------------------------------------------------------------------- rolling
