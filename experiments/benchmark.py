@@ -137,6 +137,7 @@ if ARGS is not None and ARGS.x64:
 
 import jdem  # noqa: E402
 from jdem import contact, integrate, measure, neighbors, timestep  # noqa: E402
+from jdem.specimen import lattice  # noqa: E402
 from jdem import walls as walls_mod  # noqa: E402
 from jdem.kinematics import dot, segment_add  # noqa: E402
 
@@ -184,22 +185,15 @@ def environment(args):
 # ----------------------------------------------------------------------------- packing
 def lattice_sites(dim, n, spacing):
     """First ``n`` sites of a triangular (2D) or FCC (3D) lattice of nearest-
-    neighbour distance ``spacing``, filling a near-square / near-cubic block
-    row by row (layer by layer), so the top row may be partial."""
+    neighbour distance ``spacing`` (:func:`jdem.specimen.lattice.lattice_sites`),
+    filling a near-square / near-cubic block row by row (layer by layer), so the
+    top row may be partial."""
     if dim == 2:
         ny = int(np.ceil(np.sqrt(n / (np.sqrt(3) / 2))))
         nx = int(np.ceil(n / ny))
-        jx, jy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="xy")
-        x = (jx + 0.5 * (jy % 2)) * spacing
-        y = jy * spacing * np.sqrt(3) / 2
-        pts = np.stack([x.ravel(), y.ravel()], 1)
-        return pts[np.lexsort((pts[:, 0], pts[:, 1]))][:n]
-    a = spacing * np.sqrt(2)  # cubic cell edge; nearest neighbours at a / sqrt 2
+        return lattice.lattice_sites("triangular", (nx, ny), spacing)[:n]
     m = int(np.ceil((n / 4) ** (1 / 3)))
-    basis = np.array([[0, 0, 0], [.5, .5, 0], [.5, 0, .5], [0, .5, .5]])
-    cells = np.stack(np.meshgrid(*[np.arange(m)] * 3, indexing="ij"), -1).reshape(-1, 1, 3)
-    pts = ((cells + basis[None]) * a).reshape(-1, 3)
-    return pts[np.lexsort((pts[:, 0], pts[:, 1], pts[:, 2]))][:n]
+    return lattice.lattice_sites("fcc", (m, m, m), spacing)[:n]
 
 
 def make_case(dim, n, args):

@@ -90,7 +90,13 @@ Modules
 * :mod:`jdem.specimen.bonding` the gap rule, the coordination target, floaters (step 4);
 * :mod:`jdem.specimen.build` the public builders :func:`generate` and
   :func:`specimen_for_coordination`;
-* :mod:`jdem.specimen.edit` :func:`as_arrays`, :func:`subset`, :func:`flatten_disc`.
+* :mod:`jdem.specimen.edit` :func:`as_arrays`, :func:`subset`, :func:`remove`,
+  :func:`excavate` (a running state, fixed capacity), :func:`flatten_disc`;
+* :mod:`jdem.specimen.lattice` square, triangular (hexagonal close-packed),
+  simple cubic and fcc lattices, bonded (:func:`bonded_lattice`), and the
+  triangular lattice's elastic constants;
+* :mod:`jdem.specimen.loads` the particles on a face, pressure and traction
+  loads (:func:`pressure_load`, :func:`surface_load`).
 """
 from jdem.specimen.container import (  # noqa: F401
     DISC_SIDES,
@@ -100,4 +106,6 @@ from jdem.specimen.container import (  # noqa: F401
     Specimen,
 )
 from jdem.specimen.build import generate, specimen_for_coordination  # noqa: F401
-from jdem.specimen.edit import as_arrays, flatten_disc, subset  # noqa: F401
+from jdem.specimen.edit import as_arrays, excavate, flatten_disc, remove, subset  # noqa: F401
+from jdem.specimen.lattice import bonded_lattice, lattice_packing, lattice_sites  # noqa: F401
+from jdem.specimen.loads import face_particles, pressure_load, surface_load  # noqa: F401

@@ -1,5 +1,7 @@
 """Editing specimens: host arrays of a specimen, a subset of particles with its
-bonds renumbered, and the flattened disc of the Brazilian test.
+bonds renumbered (:func:`subset`, :func:`remove`), excavation of a running
+state at fixed capacity (:func:`excavate`), and the flattened disc of the
+Brazilian test.
 """
 from __future__ import annotations
 
@@ -41,6 +43,48 @@ def subset(particles, bonds, keep):
     new_bonds = new_bonds._replace(i=jnp.asarray(new_index[bi[sel]], jnp.int32),
                                    j=jnp.asarray(new_index[bj[sel]], jnp.int32))
     return parts, new_bonds, rows
+
+
+def remove(particles, bonds, drop):
+    """The specimen without the particles where ``drop`` (N,) is true, and
+    without their bonds; the rest renumbered (:func:`subset`).  Returns
+    ``(particles, bonds, rows)``.  Use it before a run (a hole in a specimen,
+    a notch); for a state in the middle of a run use :func:`excavate`."""
+    return subset(particles, bonds, ~np.asarray(drop, bool))
+
+
+def excavate(state, drop):
+    """The state with the particles where ``drop`` (N,) is true taken out,
+    keeping every capacity and index (no recompilation, jit-able):
+
+    * the particles become invalid rows (``valid`` false): they no longer move,
+      touch anything or count in measurements, their velocities and applied
+      loads are zeroed;
+    * their bonds become invalid rows (they are not "broken": they no longer
+      exist, so they leave the fracture degree's count as well);
+    * their listed contacts become invalid and lose their shear history; their
+      wall contacts lose theirs.
+
+    The rest of the state is unchanged, so the run goes on from the stresses it
+    had: the excavation of a tunnel in a stressed rock mass (000 §9).  Shapes:
+    ``drop`` (N,) bool; a batched state takes (B, N)."""
+    p = state.particles
+    drop = jnp.asarray(drop, bool) & p.valid
+    keep = ~drop
+    zero_d = lambda a: jnp.where(drop.reshape(drop.shape + (1,) * (a.ndim - drop.ndim)),
+                                 jnp.zeros_like(a), a)
+    particles = p._replace(valid=keep & p.valid, vel=zero_d(p.vel), angvel=zero_d(p.angvel),
+                           ext_force=zero_d(p.ext_force), ext_torque=zero_d(p.ext_torque))
+    take = lambda idx: jnp.take_along_axis(drop, idx, axis=-1) if drop.ndim > 1 else drop[idx]
+    b = state.bonds
+    bonds = b._replace(valid=b.valid & ~(take(b.i) | take(b.j)))
+    c = state.contacts
+    gone = take(c.i) | take(c.j)
+    contacts = c._replace(valid=c.valid & ~gone,
+                          shear=jnp.where(gone[..., None], jnp.zeros_like(c.shear), c.shear))
+    w = state.walls
+    walls = w._replace(shear=jnp.where(drop[..., None, :, None], jnp.zeros_like(w.shear), w.shear))
+    return state._replace(particles=particles, bonds=bonds, contacts=contacts, walls=walls)
 
 
 def flatten_disc(specimen_disc, flat_angle_deg):

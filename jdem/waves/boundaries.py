@@ -46,6 +46,7 @@ import numpy as np
 
 from jdem import integrate
 from jdem.kinematics import dot
+from jdem.specimen.loads import FACES, face_particles, outward_normal, valid_rows
 from jdem.state import Params
 from jdem.validate import InputError, require_finite, require_positive
 from jdem.waves.pulses import Incident, zero_history, at
@@ -53,7 +54,7 @@ from jdem.waves.pulses import Incident, zero_history, at
 Array = jnp.ndarray
 
 
-SIDES = {"left": (-1.0, 0.0), "right": (1.0, 0.0), "bottom": (0.0, -1.0), "top": (0.0, 1.0)}
+SIDES = FACES[2]
 
 
 
@@ -141,29 +142,6 @@ class BoundarySet(NamedTuple):
 
 
 
-def _outward(side):
-    if isinstance(side, str):
-        if side not in SIDES:
-            raise InputError(f"side must be one of {tuple(SIDES)} or a normal vector, got {side!r}")
-        return np.asarray(SIDES[side])
-    n = require_finite("side", side).reshape(-1)
-    if n.shape != (2,) or np.linalg.norm(n) == 0:
-        raise InputError(f"side must be a non-zero 2D normal vector, got {side!r}")
-    return n / np.linalg.norm(n)
-
-
-
-def _candidate_rows(particles, among):
-    """Indices of the valid particles, restricted to ``among`` if given (non-empty)."""
-    rows = np.nonzero(np.asarray(particles.valid))[0]
-    if among is not None:
-        rows = np.intersect1d(rows, np.asarray(among, np.int64))
-    if rows.size == 0:
-        raise InputError("among selects no valid particle")
-    return rows
-
-
-
 def boundary_particles(particles, side, *, tolerance=None, among=None) -> BoundarySet:
     """The discs on the straight boundary of the assembly facing ``side``.
 
@@ -177,13 +155,7 @@ def boundary_particles(particles, side, *, tolerance=None, among=None) -> Bounda
     if pos.shape[1] != 2:
         raise InputError(f"boundary_particles works on 2D discs, got dimension {pos.shape[1]}")
     rad = np.asarray(particles.radius, np.float64)
-    rows = _candidate_rows(particles, among)
-    n = _outward(side)
-    tol = 0.5 * rad[rows].min() if tolerance is None else float(
-        require_positive("tolerance", tolerance, allow_zero=True))
-    edge = pos[rows] @ n + rad[rows]
-    outer = edge.max()
-    pick = rows[edge >= outer - tol]
+    pick, n, outer = face_particles(particles, side, tolerance=tolerance, among=among)
     t = np.array([-n[1], n[0]])
     pick = pick[np.argsort(pos[pick] @ t)]
     return BoundarySet(index=pick, width=2.0 * rad[pick], normal=n, tangent=t,
@@ -429,8 +401,8 @@ def exposed_particles(particles, side="right", *, among=None) -> BoundarySet:
     edge).  2D only; O(N^2) on the host."""
     pos = np.asarray(particles.pos, np.float64)
     rad = np.asarray(particles.radius, np.float64)
-    rows = _candidate_rows(particles, among)
-    n = _outward(side)
+    rows = valid_rows(particles, among)
+    n = outward_normal(side, 2)
     t = np.array([-n[1], n[0]])
     d = pos[rows][None, :, :] - pos[rows][:, None, :]         # (k, m, 2): m relative to k
     ahead = (d @ n > 0) & (np.abs(d @ t) < rad[rows][None, :])

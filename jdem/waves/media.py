@@ -12,8 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jdem import timestep
-from jdem.bond import create_bonds
 from jdem.specimen import generate
+from jdem.specimen.lattice import bond_touching, lattice_packing
 from jdem.state import Params, make_params, make_particles
 from jdem.validate import InputError, require_positive
 
@@ -46,14 +46,12 @@ def contact_modulus(c_p, density, alpha_c=0.5):
 
 def square_packing(nx, ny, radius, *, origin=(0.0, 0.0)):
     """Centres (nx ny, 2) and radii of equal discs in a square arrangement, row by
-    row from the lower left (Pattern A of 001 Fig 2), lower-left corner at ``origin``."""
+    row from the lower left (Pattern A of 001 Fig 2), lower-left corner at ``origin``
+    (:func:`jdem.specimen.lattice.lattice_packing` with ``"square"``)."""
     for name, v in (("nx", nx), ("ny", ny)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
             raise InputError(f"{name} must be a positive integer, got {v!r}")
-    r = float(require_positive("radius", radius))
-    gx, gy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="xy")
-    pos = np.stack([gx.ravel(), gy.ravel()], axis=1) * 2.0 * r + r + np.asarray(origin, float)
-    return pos, np.full(nx * ny, r)
+    return lattice_packing("square", (nx, ny), radius, origin=origin)
 
 
 
@@ -69,8 +67,7 @@ def lattice(pos, rad, disc_density, *, fix_rotation=False, dtype=None):
     p = make_particles(pos, rad, density=disc_density, dtype=dtype)
     if fix_rotation:
         p = p._replace(fixed_rot=jnp.ones_like(p.fixed_rot))
-    bonds = create_bonds(p, 2, gap_tolerance=1e-6 * float(np.min(rad)))
-    return p, bonds
+    return p, bond_touching(p)
 
 
 
