@@ -206,9 +206,13 @@ def ucs_settings(config_path=None, small=False, defaults=None) -> dict:
     return cfg
 
 
-def ucs(config=None, out="results/ucs", small=False, progress=True):
+def ucs(config=None, out="results/ucs", small=False, progress=True, animate=False,
+        paraview=False):
     """``jdem ucs``: generate the specimen, compress it, write ``ucs.png`` and
-    ``ucs.h5`` to ``out``; returns the HDF5 path."""
+    ``ucs.h5`` to ``out``; with ``animate`` also ``failure.gif`` (the first
+    softening strain's failure developing, :func:`jdem.plot.animate_failure`),
+    with ``paraview`` the ParaView series ``paraview/ucs.pvd``
+    (:func:`jdem.export.write_series`); returns the HDF5 path."""
     import jax
     import numpy as np
 
@@ -258,6 +262,21 @@ def ucs(config=None, out="results/ucs", small=False, progress=True):
         attrs[f"summary_{k}"] = np.asarray(v).tolist()
     path = io.save_run(out / "ucs.h5", state=state, params=params, config=config_,
                        history=hist, attrs=attrs)
+    if animate or paraview:
+        from jdem import export
+        from jdem.batch import member
+
+        batched = np.ndim(state.step) == 1
+        first = member(state, 0) if batched else state
+        one = {k: (np.asarray(v)[0] if batched else np.asarray(v)) for k, v in hist.items()
+               if k in ("step", "axial_strain", "axial_stress")}
+        if animate:
+            plot.animate_failure(first, one, out / "failure.gif")
+            print(f"  -> {out / 'failure.gif'}")
+        if paraview:
+            every = max(1, one["step"].size // 50)
+            pvd = export.write_series(out / "paraview", first, one, name="ucs", every=every)
+            print(f"  -> {pvd} (open in ParaView)")
     for b, k in enumerate(kappas):
         s = {key: np.atleast_1d(v)[b] for key, v in summary.items()}
         print(f"  kappa {k * 100:g} %: peak {s['peak_stress'] / 1e6:.2f} MPa at strain "
@@ -399,6 +418,10 @@ def main(argv=None):
     u.add_argument("--out", default="results/ucs")
     u.add_argument("--small", action="store_true",
                    help="reduced specimen (1 cm x 2 cm, ~500 discs) and a faster platen")
+    u.add_argument("--animate", action="store_true",
+                   help="also write failure.gif: the cracks developing (first kappa)")
+    u.add_argument("--paraview", action="store_true",
+                   help="also write paraview/ucs.pvd + .vtu files (first kappa) for ParaView")
     c = sub.add_parser("calibrate", help="fit micro-parameters to a laboratory stress-strain "
                                           "curve (CSV: strain, stress in Pa)")
     c.add_argument("curve", help="CSV file: strain [-], axial stress [Pa] and optionally the "
@@ -417,7 +440,7 @@ def main(argv=None):
 
     try:
         if args.cmd == "ucs":
-            ucs(args.config, args.out, args.small)
+            ucs(args.config, args.out, args.small, animate=args.animate, paraview=args.paraview)
         else:
             calibrate_cli(args.curve, args.config, args.out, args.small)
     except InputError as e:

@@ -1,5 +1,5 @@
 """Every figure the library draws: single-bond curves, UCS curves, the
-calibration report and sweep maps.  The CLI, the notebooks and the experiments
+animation of a failure developing, the calibration report and sweep maps.  The CLI, the notebooks and the experiments
 call these; matplotlib is imported only when a figure is drawn.
 
 Functions that take ``path`` write a PNG there (with the Agg backend, so they
@@ -69,6 +69,77 @@ def plot_ucs(hist, kappas, path):
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
+
+
+def animate_failure(state, history, path, *, frames=40, fps=8):
+    """A GIF of the failure pattern developing in a 2D lab test.
+
+    ``state``: the final (unbatched) state; ``history``: that member's history
+    with ``step``, ``axial_strain`` and ``axial_stress`` (K,) (a
+    :func:`jdem.lab.run` history; pick a member of a batched one with
+    :func:`jdem.batch.member` and ``{k: v[b] ...}``).  Left: the discs, and each
+    bond drawn from the record at which it broke on (``break_step``), red in
+    tension, blue in shear; right: the stress–strain curve with the current
+    record.  ``frames`` records evenly spaced over the run, ``fps`` per second,
+    written with matplotlib's Pillow writer.  Returns the path."""
+    from matplotlib.animation import FuncAnimation, PillowWriter
+    from matplotlib.collections import EllipseCollection, LineCollection
+
+    p, b = state.particles, state.bonds
+    pos = np.asarray(p.pos, np.float64)
+    if pos.ndim != 2 or pos.shape[1] != 2:
+        raise InputError(f"animate_failure draws one 2D specimen, got positions of shape "
+                         f"{pos.shape}")
+    for key in ("step", "axial_strain", "axial_stress"):
+        if key not in history or np.ndim(history[key]) != 1:
+            raise InputError(f"history needs a 1D {key!r} entry (one member's records)")
+    valid = np.asarray(p.valid, bool)
+    rad = np.asarray(p.radius, np.float64)
+    steps = np.asarray(history["step"])
+    strain = np.asarray(history["axial_strain"]) * 1e6
+    stress = np.asarray(history["axial_stress"]) / 1e6
+    bi, bj = np.asarray(b.i), np.asarray(b.j)
+    broke = np.asarray(b.valid, bool) & (np.asarray(b.break_step) >= 0)
+    mode = np.asarray(b.break_mode)
+    when = np.asarray(b.break_step)
+    segs = np.stack([pos[bi], pos[bj]], axis=1)
+    picks = np.unique(np.linspace(0, steps.size - 1, max(1, int(frames))).round().astype(int))
+
+    fig = _figure((9, 4.6))
+    ax, ax2 = fig.subplots(1, 2, gridspec_kw=dict(width_ratios=(1, 1.2)))
+    ax.add_collection(EllipseCollection(2 * rad[valid], 2 * rad[valid], 0.0, units="xy",
+                                        offsets=pos[valid], offset_transform=ax.transData,
+                                        facecolors="0.85", edgecolors="0.6", linewidths=0.2))
+    tension = LineCollection([], colors="tab:red", linewidths=1.2, label="tension")
+    shear = LineCollection([], colors="tab:blue", linewidths=1.2, label="shear")
+    ax.add_collection(tension)
+    ax.add_collection(shear)
+    lo, hi = (pos[valid] - rad[valid, None]).min(0), (pos[valid] + rad[valid, None]).max(0)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.legend(loc="upper right", fontsize=7, title="broken bonds", title_fontsize=7)
+    ax2.plot(strain, stress, "k-", lw=1.2)
+    marker, = ax2.plot([], [], "o", color="tab:orange")
+    ax2.set_xlabel("axial strain [10⁻⁶]")
+    ax2.set_ylabel("axial stress [MPa]")
+    ax2.grid(alpha=0.3)
+    ax.set_title("step 0: 0 bonds broken", fontsize=9)   # room for the title in the layout
+    fig.tight_layout()
+
+    def draw(k):
+        done = broke & (when <= steps[k])
+        tension.set_segments(segs[done & (mode == 1)])
+        shear.set_segments(segs[done & (mode == 2)])
+        marker.set_data([strain[k]], [stress[k]])
+        ax.set_title(f"step {int(steps[k])}: {int(done.sum())} bonds broken", fontsize=9)
+        return tension, shear, marker
+
+    path = pathlib.Path(path)
+    FuncAnimation(fig, draw, frames=picks, blit=False).save(path, writer=PillowWriter(fps=fps))
+    return path
 
 
 # ----------------------------------------------------------------------------- calibration

@@ -291,13 +291,55 @@ kappa = 0.003
 
 
 def test_cli_ucs_writes_png_and_hdf5(tmp_path):
+    """``jdem ucs --animate --paraview``: the PNG and HDF5, a GIF of the failure
+    developing and a ParaView series, which reopen with Pillow and meshio and
+    show the bonds breaking as the run's final state says."""
+    import meshio
+    from PIL import Image
+
     out = tmp_path / "out"
-    assert cli.main(["ucs", "--config", str(_toml(tmp_path)), "--out", str(out)]) == 0
+    assert cli.main(["ucs", "--config", str(_toml(tmp_path)), "--out", str(out), "--animate",
+                     "--paraview"]) == 0
     assert (out / "ucs.png").stat().st_size > 10_000
     rd = io.load_run(out / "ucs.h5")
-    assert rd.history["axial_stress"].shape[0] >= 30     # 4,000 steps, a record every 100
+    n_rec = rd.history["axial_stress"].shape[0]
+    assert n_rec >= 30     # 4,000 steps, a record every 100
     assert float(np.max(rd.history["axial_stress"])) > 1e6
     assert rd.state is not None and rd.params is not None and rd.config is not None
+    with Image.open(out / "failure.gif") as gif:
+        assert gif.n_frames == min(40, n_rec) and gif.size[0] > 500
+    pvd = (out / "paraview" / "ucs.pvd").read_text()
+    files = sorted((out / "paraview").glob("ucs_*.vtu"))
+    assert len(files) == n_rec and pvd.count("<DataSet") == n_rec
+    last = meshio.read(files[-1])
+    state = rd.state
+    n = int(np.sum(np.asarray(state.particles.valid)))
+    np.testing.assert_allclose(last.points[:, :2], np.asarray(state.particles.pos)[:n])
+    np.testing.assert_allclose(last.point_data["radius"], np.asarray(state.particles.radius)[:n])
+    lines = last.cells_dict["line"]
+    assert lines.shape[0] == int(np.sum(np.asarray(state.bonds.valid)))
+    broken_at_end = int(np.sum(np.asarray(state.bonds.broken) & np.asarray(state.bonds.valid)))
+    assert int(np.sum(last.cell_data_dict["broken"]["line"])) == broken_at_end
+    # this short run stops before any bond breaks: mark bonds broken at chosen
+    # steps and check that each record shows those broken by then, by mode
+    from jdem import export
+
+    b = state.bonds
+    steps = rd.history["step"]
+    rows = np.nonzero(np.asarray(b.valid))[0][:30]
+    when = np.full(b.break_step.shape, -1)
+    when[rows] = steps[np.linspace(0, n_rec - 1, rows.size).astype(int)]
+    mode = np.zeros(b.break_mode.shape, np.int32)
+    mode[rows] = 1 + np.arange(rows.size) % 2
+    state = state._replace(bonds=b._replace(break_step=when, break_mode=mode,
+                                            broken=when >= 0))
+    pvd = export.write_series(tmp_path / "pv", state, rd.history, name="s", every=7)
+    for k in range(0, n_rec, 7):
+        m = meshio.read(tmp_path / "pv" / f"s_{k:04d}.vtu")
+        got = m.cell_data_dict["break_mode"]["line"]
+        expect = np.where((when >= 0) & (when <= steps[k]), mode, 0)[np.asarray(b.valid)]
+        np.testing.assert_array_equal(got, expect)
+    assert pvd.read_text().count("<DataSet") == len(range(0, n_rec, 7))
 
 
 @pytest.mark.parametrize("override, match", [
