@@ -226,16 +226,12 @@ def carry_history(contacts: Contacts, new_i, new_j, valid, n):
 
 
 # ----------------------------------------------------------------------------- build
-@functools.partial(jax.jit, static_argnames=("config",))
-def build(contacts: Contacts, particles: Particles, config: Config, bonds=None) -> Contacts:
-    """Rebuild the pair list from scratch at the current positions (jit-able).
-
-    Keeps the tangential history of pairs that were already listed.  Records
-    the space it needed so that the host can detect overflow.
-    """
+def candidate_mask(particles: Particles, cand, config: Config, bonds=None):
+    """(N, M) bool: the candidates ``cand`` (N, M) of :func:`candidates` that
+    :func:`build` lists: real partners j > i of valid particles whose gap is
+    below ``config.skin``, and not bonded to i (bonded pairs interact through
+    their bond only)."""
     n = particles.pos.shape[0]
-    cap = contacts.i.shape[0]
-    cand, max_in_cell = candidates(particles, config)
     ii = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32)[:, None], cand.shape)
     real = (cand < n) & (cand > ii) & particles.valid[:, None]
     # gap test one component at a time (N,) -> (N, M): no (N, M, d) temporaries
@@ -248,6 +244,20 @@ def build(contacts: Contacts, particles: Particles, config: Config, bonds=None) 
     mask = real & (gap2 < reach * reach)
     if bonds is not None and bonds.i.shape[0] > 0:
         mask = mask & ~_bonded(bonds, cand)
+    return mask
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def build(contacts: Contacts, particles: Particles, config: Config, bonds=None) -> Contacts:
+    """Rebuild the pair list from scratch at the current positions (jit-able).
+
+    Keeps the tangential history of pairs that were already listed.  Records
+    the space it needed so that the host can detect overflow.
+    """
+    n = particles.pos.shape[0]
+    cap = contacts.i.shape[0]
+    cand, max_in_cell = candidates(particles, config)
+    mask = candidate_mask(particles, cand, config, bonds)
     new_i, new_j, valid, count = _compact(mask, cand, cap, config.max_per_cell)
     shear = carry_history(contacts, new_i, new_j, valid, n)
     return Contacts(
