@@ -385,7 +385,7 @@ def test_ensemble_member_that_diverges_is_isolated():
     both = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), pe, bad)
     hist = {k: np.asarray(v) for k, v in lab.curve(ens, both).history.items()}
     assert hist["member_first_bad_step"][0] < 0 <= hist["member_first_bad_step"][1]
-    term = cb._terms(ens, target_curve(), cb.LossWeights())[0]
+    term = cb.problem.make_terms(ens, target_curve(), cb.LossWeights())[0]
     r, ok = cb.term_residuals(hist, term)
     r, ok = np.asarray(r).reshape(2, -1), np.asarray(ok)
     assert ok.tolist() == [True, False]
@@ -401,11 +401,11 @@ def test_scalar_targets_are_z_scores_and_terms_concatenate():
     model, params = model_and_params()
     c = target_curve()
     peak = float(np.max(c["stress"]))
-    terms = cb._terms([model, model], [c, cb.Scalar("peak_stress", 1.1 * peak, 0.05 * peak)],
+    terms = cb.problem.make_terms([model, model], [c, cb.Scalar("peak_stress", 1.1 * peak, 0.05 * peak)],
                       cb.LossWeights())
     names, lims = ("E",), {"E": (1e9, 1e11)}
-    u = jnp.asarray([cb._to_internal(TRUE["E"], *lims["E"])])
-    r, aux = jax.jit(lambda u, a: cb._residual_fn(u, a, names=names, lims=lims,
+    u = jnp.asarray([cb.transform.to_internal(TRUE["E"], *lims["E"])])
+    r, aux = jax.jit(lambda u, a: cb.problem.residual_fn(u, a, names=names, lims=lims,
                                                   terms=tuple(terms)))(
         u, ((model, cb.material(params, TRUE)), (model, cb.material(params, TRUE))))
     r = np.asarray(r)
@@ -413,7 +413,7 @@ def test_scalar_targets_are_z_scores_and_terms_concatenate():
     # the same run by hand (E through the bounded transform).  Two compiled
     # programs sum forces in different orders; up to the first break that is
     # round-off, and past it the bond events amplify it (measured up to 5e-4).
-    e_used = float(cb._to_value(u[0], *lims["E"]))
+    e_used = float(cb.transform.to_value(u[0], *lims["E"]))
     hist = lab.curve(model, cb.material(params, dict(TRUE, E=e_used))).history
     expect = np.asarray(cb.curve_residuals(hist["axial_strain"], hist["axial_stress"],
                                            terms[0].target))
@@ -423,9 +423,9 @@ def test_scalar_targets_are_z_scores_and_terms_concatenate():
     assert r[-1] == pytest.approx(-2.0, rel=2e-3)   # (peak - 1.1 peak) / (0.05 peak)
     assert float(aux["loss"]) == pytest.approx(float(np.sum(r ** 2)))
     with pytest.raises(InputError, match="quantity"):
-        cb._terms(model, cb.Scalar("ucs", 1e8, 1e7), cb.LossWeights())
+        cb.problem.make_terms(model, cb.Scalar("ucs", 1e8, 1e7), cb.LossWeights())
     with pytest.raises(InputError, match="MPa"):
-        cb._terms(model, cb.Scalar("peak_stress", 200.0, 10.0), cb.LossWeights())
+        cb.problem.make_terms(model, cb.Scalar("peak_stress", 200.0, 10.0), cb.LossWeights())
 
 
 @pytest.mark.slow

@@ -1,0 +1,134 @@
+"""The least-squares problem of a calibration: terms (a lab-test set-up and
+its target), their residuals from a pure run, the residual function of the
+internal coordinates that the solvers differentiate."""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jdem import lab
+from jdem.calibrate.transform import to_value
+from jdem.materials import material
+from jdem.state import Params
+from jdem.targets import (LossWeights, Scalar, Target, check_scalar, curve_residuals,
+                          load_target, scalar_residuals)
+from jdem.validate import InputError
+
+class Term(NamedTuple):
+    """One simulated test and what it is compared with: a :class:`Target` curve
+    or a tuple of :class:`Scalar` figures."""
+
+    setup: lab.Setup
+    target: object
+    weights: LossWeights
+
+
+def make_terms(setup, target, weights) -> list[Term]:
+    """One :class:`Term` per set-up (a set-up or a list of them), each with its
+    target checked (:func:`jdem.targets.load_target`, or :class:`Scalar` figures)."""
+    setups = list(setup) if isinstance(setup, (list, tuple)) else [setup]
+    targets = list(target) if isinstance(target, list) else [target]
+    if len(setups) != len(targets):
+        raise InputError(f"{len(setups)} set-up(s) but {len(targets)} target(s): give one "
+                         f"target per set-up")
+    out = []
+    for k, (su, t) in enumerate(zip(setups, targets)):
+        if not isinstance(su, lab.Setup):
+            raise InputError(f"set-up {k} must be a jdem.lab.Setup, got {type(su).__name__}")
+        if isinstance(t, Scalar):
+            t = (t,)
+        if isinstance(t, tuple) and t and all(isinstance(x, Scalar) for x in t):
+            t = tuple(check_scalar(x) for x in t)
+        else:
+            t = load_target(t)
+        out.append(Term(su, t, weights))
+    return out
+
+
+def _member_residuals(hist, term: Term):
+    if isinstance(term.target, Target):
+        return curve_residuals(hist["axial_strain"], hist["axial_stress"], term.target,
+                               term.weights, hist.get("lateral_strain"))
+    return scalar_residuals(hist, term.target)
+
+
+def term_residuals(hist: dict, term: Term):
+    """Residuals of one term from its pure-run history, and (members,) flags of
+    the members that ran without diverging.  An ensemble's residuals are each
+    member's over sqrt(members) (so the loss is the mean over members); a
+    diverged member's residuals are set to 1 (a 100 % misfit)."""
+    if term.setup.plan.batched:
+        r = jax.vmap(lambda h: _member_residuals(h, term))(
+            {k: v for k, v in hist.items() if jnp.ndim(v) >= 2})
+        ok = (hist["member_first_bad_step"] < 0) & jnp.all(jnp.isfinite(r), axis=1)
+        r = jnp.where(ok[:, None], r, 1.0) / math.sqrt(r.shape[0])
+        return r.ravel(), ok
+    r = _member_residuals(hist, term)
+    ok = (hist["first_bad_step"] < 0) & jnp.all(jnp.isfinite(r))
+    return jnp.where(ok, r, 1.0), ok[None]
+
+
+def residual_fn(u, args, *, names, lims, terms):
+    """fn(u, args) -> (residuals, aux) with args = ((setup, params), ...) per term."""
+    vals = {n: to_value(u[i], *lims[n]) for i, n in enumerate(names)}
+    rs, over, ok = [], [], []
+    for term, (setup, params) in zip(terms, args):
+        hist = lab.curve(setup, material(params, vals)).history
+        r, good = term_residuals(hist, term)
+        rs.append(r)
+        over.append(hist["overflowed"])
+        ok.append(good)
+    r = jnp.concatenate(rs)
+    return r, dict(overflowed=jnp.stack(over), ok=tuple(ok), loss=jnp.sum(r ** 2))
+
+
+def residual_problem(names, lims, terms, plist):
+    """``(fn, args)`` for the solvers: ``fn(u, args)`` is :func:`residual_fn`
+    bound to the names, bounds and terms as a ``jax.tree_util.Partial`` (a
+    pytree, so the module-level jits of :func:`compiled_steps` see its arrays as
+    traced and reuse their compilation), ``args`` the (set-up, params) pairs."""
+    fn = jax.tree_util.Partial(residual_fn, names=tuple(names), lims=lims, terms=tuple(terms))
+    return fn, tuple((t.setup, p) for t, p in zip(terms, plist))
+
+
+def calibration_loss(params: Params, setup, target, weights=LossWeights()):
+    """Sum of squared residuals of ``params`` on one lab-test set-up against one
+    target (the mean over an ensemble's members), and the pure run's history."""
+    term = make_terms(setup, target, weights)[0]
+    hist = lab.curve(setup, params).history
+    r, _ = term_residuals(hist, term)
+    return jnp.sum(r ** 2), hist
+
+
+def peakless(terms, histories) -> list:
+    """Messages for the terms whose fitted run peaks at its last record: the
+    "peak" stress of a curve or a peak / strength target is then only the
+    stress where the loading stopped, not a failure (load further: a larger
+    ``max_strain``).  ``histories``: one NumPy history per term."""
+    out = []
+    for k, (term, hist) in enumerate(zip(terms, histories)):
+        needs_peak = isinstance(term.target, Target) or any(
+            t.quantity in ("peak_stress", "tensile_strength") for t in term.target)
+        if not needs_peak:
+            continue
+        key = "tensile_strength_indirect" if "tensile_strength_indirect" in hist \
+            else "axial_stress"
+        stress = np.atleast_2d(np.asarray(hist[key]))
+        last = [m for m in range(stress.shape[0])
+                if int(np.argmax(stress[m])) == stress.shape[1] - 1]
+        if last:
+            out.append(f"term {k} ({term.setup.plan.test.name}): the fitted curve of member(s) "
+                       f"{last} has no peak before the end of loading, so its peak is the "
+                       f"stress where loading stopped; raise max_strain")
+    return out
+
+
+def n_data(term):
+    """The residuals of ``term`` that carry data (curve points or figures, times
+    the members of an ensemble)."""
+    n = len(term.target.strain) if isinstance(term.target, Target) else len(term.target)
+    return n * term.setup.n_members

@@ -1,0 +1,151 @@
+"""The solvers' steps: Levenberg-Marquardt and Gauss-Newton from optimistix,
+Adam from optax, and the Jacobian by forward or reverse mode, each jitted once
+per process (:func:`compiled_steps`)."""
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jdem import lab
+from jdem.calibrate.problem import residual_problem
+from jdem.validate import InputError
+
+def _jacobian_impl(fn, u, args, mode):
+    if mode == "forward":
+        r, lin = jax.linearize(lambda v: fn(v, args)[0], u)
+        return r, jax.vmap(lin, out_axes=1)(jnp.eye(u.shape[0], dtype=u.dtype))
+    r, vjp = jax.vjp(lambda v: fn(v, args)[0], u)
+    return r, jax.vmap(vjp)(jnp.eye(r.shape[0], dtype=r.dtype))[0]
+
+
+def jacobian_at(fn, u, args, mode):
+    """Residuals (n,) and Jacobian (n, k) d r / d u at ``u`` as NumPy, by
+    ``mode`` "forward" (``jax.linearize``) or "reverse" (``jax.vjp``)."""
+    r, J = compiled_steps()["jacobian"](fn, u, args, mode)
+    return np.asarray(r), np.asarray(J)
+
+
+@functools.cache
+def compiled_steps():
+    """The jitted steps, built once per process and kept at module level, so a
+    second ``calibrate`` call on the same set-up (a resumed fit, a notebook cell
+    run again) reuses their compilation: ``fn`` is a ``jax.tree_util.Partial`` (a
+    pytree), its arrays traced and the rest (names, bounds, plan) static."""
+    import equinox as eqx
+
+    return dict(
+        jacobian=eqx.filter_jit(_jacobian_impl),
+        init=eqx.filter_jit(lambda solver, fn, y, a, o, f_struct, aux_struct, tags:
+                            solver.init(fn, y, a, o, f_struct, aux_struct, tags)),
+        step=eqx.filter_jit(lambda solver, fn, y, s, a, o, tags:
+                            solver.step(fn, y, a, o, s, tags)),
+        terminate=eqx.filter_jit(lambda solver, fn, y, s, a, o, tags:
+                                 solver.terminate(fn, y, a, o, s, tags)),
+        value_and_grad=eqx.filter_jit(_value_and_grad_impl))
+
+
+def least_squares(terms, plist, u, names, lims, record, history, steps, *, method, jacobian,
+                   rtol, atol, tol, patience, min_improvement, **_):
+    """Levenberg-Marquardt / Gauss-Newton (optimistix), one host step per iteration."""
+    import optimistix as optx
+
+    solver = (optx.LevenbergMarquardt if method == "lm" else optx.GaussNewton)(rtol=rtol,
+                                                                                atol=atol)
+    options = dict(jac="fwd" if jacobian == "forward" else "bwd")
+    tags = frozenset()
+    stall, last = 0, (min(history["loss"]) if history["loss"] else np.inf)
+    k = 0
+    while k < steps:
+        fn, args = residual_problem(names, lims, terms, plist)
+        f_struct, aux_struct = jax.eval_shape(fn, u, args)
+        compiled = compiled_steps()
+        # through the cached jit too: the state holds the linearised function as a
+        # jaxpr, which the step's cache compares by identity
+        state = compiled["init"](solver, fn, u, args, options, f_struct, aux_struct, tags)
+        step = functools.partial(compiled["step"], solver, fn)
+        terminate = functools.partial(compiled["terminate"], solver, fn)
+        regrow = False
+        while k < steps:
+            u, state, _ = step(u, state, args, options, tags)
+            aux = state.aux
+            if bool(np.any(np.asarray(aux["overflowed"]))):
+                terms = [t._replace(setup=lab.grow(t.setup)) if bool(o) else t
+                         for t, o in zip(terms, np.asarray(aux["overflowed"]))]
+                regrow = True
+                break
+            loss = float(aux["loss"])
+            if not np.isfinite(loss):
+                raise RuntimeError(f"calibration iteration {len(history['loss'])}: the loss is "
+                                   f"{loss!r} at {dict(zip(names, np.asarray(u)))} (internal "
+                                   f"coordinates); narrow the bounds")
+            if k == 0 and not all(bool(np.any(np.asarray(o))) for o in aux["ok"]):
+                raise InputError("a test (every member of it) diverges at the start values; "
+                                 "change them or the time step")
+            record(u, loss, aux["ok"])
+            k += 1
+            stall = 0 if loss < last * (1.0 - min_improvement) else stall + 1
+            last = min(last, loss)
+            done, _result = terminate(u, state, args, options, tags)
+            if bool(done) or loss < tol:
+                return True, terms
+            if stall >= patience:
+                return True, terms
+        if not regrow:
+            break
+    return False, terms
+
+
+def adam(terms, plist, u, names, lims, record, history, steps, *, jacobian, learning_rate,
+          tol, patience, min_improvement, **_):
+    """First-order fit: Adam (optax) on the sum of squares, gradient 2 J^T r by forward
+    mode or by ``jax.grad``."""
+    import optax
+
+    opt = optax.adam(optax.cosine_decay_schedule(learning_rate, max(int(steps), 1), alpha=0.05))
+    state = opt.init(u)
+    stall, last = 0, (min(history["loss"]) if history["loss"] else np.inf)
+    k = 0
+    vg_fn = None
+    while k < steps:
+        if vg_fn is None:   # built again after the neighbour list grew
+            fn, args = residual_problem(names, lims, terms, plist)
+            vg_fn = functools.partial(compiled_steps()["value_and_grad"], fn)
+        loss, aux, g = vg_fn(u, args, jacobian)
+        if bool(np.any(np.asarray(aux["overflowed"]))):
+            terms = [t._replace(setup=lab.grow(t.setup)) if bool(o) else t
+                     for t, o in zip(terms, np.asarray(aux["overflowed"]))]
+            vg_fn = None
+            continue
+        loss = float(loss)
+        if not np.isfinite(loss):
+            raise RuntimeError(f"calibration iteration {len(history['loss'])}: the loss is "
+                               f"{loss!r}; narrow the bounds")
+        record(u, loss, aux["ok"])
+        k += 1
+        stall = 0 if loss < last * (1.0 - min_improvement) else stall + 1
+        last = min(last, loss)
+        if loss < tol or stall >= patience:
+            return True, terms
+        updates, state = opt.update(g, state, u)
+        u = optax.apply_updates(u, updates)
+    return False, terms
+
+
+def _value_and_grad_impl(fn, u, args, mode):
+    if mode == "forward":
+        def with_residuals(v):
+            r, aux = fn(v, args)
+            return r, (r, aux)
+
+        J, (r, aux) = jax.jacfwd(with_residuals, has_aux=True)(u)
+        return jnp.sum(r ** 2), aux, 2.0 * J.T @ r
+
+    def loss(v):
+        r, aux = fn(v, args)
+        return jnp.sum(r ** 2), aux
+
+    (value, aux), g = jax.value_and_grad(loss, has_aux=True)(u)
+    return value, aux, g
