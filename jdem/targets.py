@@ -198,9 +198,20 @@ def load_target(source, *, strain_column=0, stress_column=1, lateral_column=None
 def _read_csv(path, ce, cs, cl=None):
     if not path.exists():
         raise InputError(f"target file {str(path)!r} does not exist")
+    if not path.is_file():
+        raise InputError(f"target file {str(path)!r} is not a file")
     rows = []
     header = False
-    with open(path, newline="") as f:
+    try:
+        return _parse_csv(path, ce, cs, cl, rows, header)
+    except UnicodeDecodeError as e:
+        raise InputError(f"target file {str(path)!r} is not a text CSV file ({e.reason} at "
+                         f"byte {e.start})") from None
+
+
+def _parse_csv(path, ce, cs, cl, rows, header):
+    # utf-8-sig: a byte-order mark (as spreadsheet programs write) is not part of line 1
+    with open(path, newline="", encoding="utf-8-sig") as f:
         for n, row in enumerate(csv.reader(f)):
             if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
                 continue
@@ -217,7 +228,9 @@ def _read_csv(path, ce, cs, cl=None):
                 rows.append(tuple(float(row[c]) for c in (ce, cs))
                             + (() if cl_row is None else (_reading(row[cl_row]),)))
             except ValueError:
-                if rows or header:   # only the first line may be a header
+                # only the first line may be a header, and a header holds no number
+                # in these columns (a first row with a typo is an error, not a header)
+                if rows or header or any(_is_number(row[c]) for c in cols if c < len(row)):
                     raise InputError(f"{path}: line {n + 1} is not {len(cols)} numbers: "
                                      f"{row!r}") from None
                 header = True
@@ -228,6 +241,14 @@ def _read_csv(path, ce, cs, cl=None):
         raise InputError(f"{path} holds no (strain, stress) rows")
     a = np.asarray(rows)
     return tuple(a[:, c] for c in range(a.shape[1]))
+
+
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
 
 
 def _reading(cell: str) -> float:

@@ -218,6 +218,20 @@ def test_load_target_sources_and_errors(tmp_path):
         cb.load_target(bad)
     with pytest.raises(InputError, match="does not exist"):
         cb.load_target(tmp_path / "missing.csv")
+    # a spreadsheet's byte-order mark is not a header: the first row is kept
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes("\ufeff".encode() + "".join(f"{a},{b}\n" for a, b in zip(e, s)).encode())
+    assert len(cb.load_target(bom).strain) == len(e)
+    typo = tmp_path / "typo.csv"
+    typo.write_text("0.0o1,5e6\n" + "".join(f"{a},{b}\n" for a, b in zip(e[1:], s[1:])))
+    with pytest.raises(InputError, match="line 1"):     # a typo, not a header
+        cb.load_target(typo)
+    with pytest.raises(InputError, match="not a file"):
+        cb.load_target(tmp_path)
+    binary = tmp_path / "curve.xlsx"
+    binary.write_bytes(b"PK\x03\x04\x14\x00\x06\x00\x08\x00\xff\xfe\x00")
+    with pytest.raises(InputError, match="not a text CSV"):
+        cb.load_target(binary)
     with pytest.raises(InputError, match="must increase"):
         cb.load_target((e[::-1], s))
     s2 = s.copy()

@@ -363,6 +363,18 @@ def test_cli_unknown_section(tmp_path):
         cli.ucs_settings(path)
 
 
+def test_cli_config_that_is_a_folder_a_binary_or_has_a_bom(tmp_path):
+    with pytest.raises(InputError, match="is a directory"):
+        cli.ucs_settings(tmp_path)
+    binary = tmp_path / "cfg.toml"
+    binary.write_bytes(b"\x89PNG\r\n\x1a\n\x00\xff")
+    with pytest.raises(InputError, match="not a text TOML"):
+        cli.ucs_settings(binary)
+    bom = tmp_path / "bom.toml"
+    bom.write_bytes("\ufeff[specimen]\nwidth = 0.012\n".encode())
+    assert cli.ucs_settings(bom)["specimen"]["width"] == 0.012
+
+
 # ----------------------------------------------------------------------------- one definition
 DEMO_SIZE = (0.004, 0.008)
 
