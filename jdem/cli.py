@@ -260,11 +260,9 @@ def ucs(config=None, out="results/ucs", small=False, progress=True, animate=Fals
     attrs = {"what": "uniaxial compression, 002 §2", "run_time_s": run_time,
              "n_particles": int(spec.info["n_particles"]), "porosity": float(spec.porosity),
              "coordination": float(spec.coordination)}
-    for sec, vals in cfg.items():
-        for k, v in vals.items():
-            attrs[f"{sec}_{k}"] = "none" if v is None else v
-    for k, v in summary.items():
-        attrs[f"summary_{k}"] = np.asarray(v).tolist()
+    attrs["settings"] = {sec: {k: "none" if v is None else v for k, v in vals.items()}
+                         for sec, vals in cfg.items()}
+    attrs["summary"] = {k: np.asarray(v).tolist() for k, v in summary.items()}
     path = io.save_run(out / "ucs.h5", state=state, params=params, config=config_,
                        history=hist, attrs=attrs)
     if animate or paraview:

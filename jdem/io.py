@@ -1,9 +1,12 @@
 """Save, load and restart a run: one HDF5 file per snapshot (h5py).
 
-File layout (format version 1)::
+File layout (format version 2)::
 
     /                     root attrs: ``format_version`` (int), ``jdem_version`` (str),
-                          plus the user's ``attrs`` (flat str/int/float/bool values)
+                          plus the user's ``attrs`` (str/int/float/bool values; lists
+                          and tuples as JSON)
+    /attrs/<name>         a group per ``attrs`` entry that is a dict: its entries
+                          as attributes, nested dicts as sub-groups
     /state                group, attr ``_class = "State"``
         /particles        group, attr ``_class = "Particles"``
             pos           dataset (N, d), dtype as in memory
@@ -16,7 +19,24 @@ File layout (format version 1)::
                           str/int/float/bool (tuples) are stored as JSON strings and
                           listed in attr ``_json_fields``
     /history              one dataset per entry (insertion order kept); any shape,
-                          e.g. a leading batch axis
+                          e.g. a leading batch axis; an entry that is a dict is a
+                          sub-group of datasets (nested dicts nest further)
+
+Groups and attributes give a file its structure (``/history/iterations/loss``,
+``/attrs/fit`` with one attribute per fitted parameter) rather than prefixes in
+flat names; :func:`load_run` gives nested groups back as nested dicts.  Format
+version 1 (no nested groups) still loads.  A calibration
+(:func:`jdem.calibrate.save_calibration`), a ``jdem ucs`` run (attribute groups
+``settings`` and ``summary``) and a lab checkpoint (history group ``raw``,
+attribute group ``lab``) and a sweep table (history group ``table``, one dataset
+per column; root attribute ``format = "jdem-sweep"``) are written this way.
+With plain h5py::
+
+    import h5py
+    with h5py.File("calibration.h5") as f:
+        fitted = dict(f["attrs/fit"].attrs)              # {"E": 3.0e10, ...}
+        loss = f["history/iterations/loss"][()]          # per iteration
+        fit_curve = f["history/curves/fit_stress"][()]
 
 Every array keeps its dtype (bool, int32, float64, ...), its shape (0-d and
 zero-length included) and its exact bits.  Arrays larger than 1 MiB are gzip
@@ -47,7 +67,7 @@ import numpy as np
 from jdem import state as _state_mod
 from jdem.validate import InputError
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 COMPRESS_ABOVE_BYTES = 1 << 20  # gzip only arrays larger than 1 MiB
 _RESERVED_ROOT_ATTRS = ("format_version", "jdem_version", "_json_fields")
 _SCALAR_TYPES = (str, bool, int, float, np.bool_, np.integer, np.floating)
@@ -127,7 +147,36 @@ def _write_attrs(attrs: h5py.AttributeManager, mapping: dict, what: str) -> None
             except (TypeError, AttributeError) as e:
                 raise InputError(f"{what}[{key!r}] cannot be stored: {value!r} ({e})") from None
             json_fields.append(key)
-    attrs["_json_fields"] = json.dumps(json_fields)
+    if json_fields:
+        attrs["_json_fields"] = json.dumps(json_fields)
+
+
+def _check_names(tree: dict, what: str) -> None:
+    """Names of a (nested) dict that become HDF5 names: non-empty str without '/'."""
+    bad = [k for k in tree if not isinstance(k, str) or not k or "/" in k or k == "."]
+    if bad:
+        raise InputError(f"{what} names must be non-empty str without '/', got {bad!r}")
+    for k, v in tree.items():
+        if isinstance(v, dict):
+            _check_names(v, f"{what}[{k!r}]")
+
+
+def _write_history(group: h5py.Group, tree: dict) -> None:
+    for name, value in tree.items():
+        if isinstance(value, dict):
+            _write_history(group.create_group(name, track_order=True), value)
+        else:
+            write_dataset(group, name, value)
+
+
+def _write_attr_groups(group: h5py.Group, tree: dict, what: str) -> None:
+    for name, value in tree.items():
+        sub = group.create_group(name, track_order=True)
+        _write_attrs(sub.attrs, {k: v for k, v in value.items() if not isinstance(v, dict)},
+                     f"{what}[{name!r}]")
+        inner = {k: v for k, v in value.items() if isinstance(v, dict)}
+        if inner:
+            _write_attr_groups(sub, inner, f"{what}[{name!r}]")
 
 
 def save_run(path, *, state=None, params=None, config=None, history=None, attrs=None,
@@ -146,9 +195,8 @@ def save_run(path, *, state=None, params=None, config=None, history=None, attrs=
     if clash:
         raise InputError(f"attrs may not use the reserved names {sorted(clash)}")
     if history is not None:
-        bad = [k for k in history if not isinstance(k, str) or not k or "/" in k or k == "."]
-        if bad:
-            raise InputError(f"history names must be non-empty str without '/', got {bad!r}")
+        _check_names(history, "history")
+    _check_names({k: v for k, v in attrs.items() if isinstance(v, dict)}, "attrs")
 
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
@@ -156,7 +204,11 @@ def save_run(path, *, state=None, params=None, config=None, history=None, attrs=
         with h5py.File(tmp, "w") as f:
             f.attrs["format_version"] = FORMAT_VERSION
             f.attrs["jdem_version"] = _jdem_version()
-            _write_attrs(f.attrs, attrs, "attrs")
+            flat = {k: v for k, v in attrs.items() if not isinstance(v, dict)}
+            _write_attrs(f.attrs, flat, "attrs")
+            nested = {k: v for k, v in attrs.items() if isinstance(v, dict)}
+            if nested:
+                _write_attr_groups(f.create_group("attrs", track_order=True), nested, "attrs")
             if state is not None:
                 _write_tree(f.create_group("state"), state)
             if params is not None:
@@ -167,9 +219,7 @@ def save_run(path, *, state=None, params=None, config=None, history=None, attrs=
                 _write_attrs(g.attrs, {fl.name: getattr(config, fl.name)
                                        for fl in dataclasses.fields(config)}, "config")
             if history is not None:
-                g = f.create_group("history", track_order=True)
-                for name, value in history.items():
-                    write_dataset(g, name, value)
+                _write_history(f.create_group("history", track_order=True), history)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
@@ -187,19 +237,39 @@ def _tuples(value):
     return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
 
 
-def _read_attrs(attrs: h5py.AttributeManager, skip=("_class",)) -> dict:
+def _read_attrs(attrs: h5py.AttributeManager, skip=("_class",), tuples=True) -> dict:
+    """Attributes as Python values; JSON ones decoded, their lists as tuples
+    (``tuples``: a Config's fields must be hashable) or as lists (user attrs)."""
     json_fields = set(json.loads(attrs.get("_json_fields", "[]")))
     out = {}
     for key, value in attrs.items():
         if key in skip or key == "_json_fields":
             continue
         value = _to_py(value)
-        out[key] = _tuples(json.loads(value)) if key in json_fields else value
+        if key in json_fields:
+            value = json.loads(value)
+            value = _tuples(value) if tuples else value
+        out[key] = value
     return out
 
 
 def _read_array(ds: h5py.Dataset):
     return jnp.asarray(read_dataset(ds))
+
+
+def _read_history(group: h5py.Group, numpy=False) -> dict:
+    read = read_dataset if numpy else _read_array
+    return {k: _read_history(v, numpy) if isinstance(v, h5py.Group) else read(v)
+            for k, v in group.items()}
+
+
+def _read_attr_groups(group: h5py.Group) -> dict:
+    out = {}
+    for name, sub in group.items():
+        d = _read_attrs(sub.attrs, tuples=False)
+        d.update(_read_attr_groups(sub))
+        out[name] = d
+    return out
 
 
 def _class_of(group: h5py.Group, default: str, where: str, path) -> type:
@@ -244,7 +314,7 @@ def open_hdf5(path):
         raise CorruptFileError(f"cannot open {path} as HDF5: {e}") from None
 
 
-def _load(path, parts=("state", "params", "config", "history", "attrs")) -> RunData:
+def _load(path, parts=("state", "params", "config", "history", "attrs"), numpy=False) -> RunData:
     path = pathlib.Path(path)
     f = open_hdf5(path)
     out = dict.fromkeys(RunData._fields)
@@ -266,9 +336,11 @@ def _load(path, parts=("state", "params", "config", "history", "attrs")) -> RunD
                 except (TypeError, ValueError) as e:
                     raise CorruptFileError(f"config in {path} is invalid: {e}") from None
             if "history" in parts and "history" in f:
-                out["history"] = {k: _read_array(v) for k, v in f["history"].items()}
+                out["history"] = _read_history(f["history"], numpy)
             if "attrs" in parts:
-                user = _read_attrs(f.attrs, skip=_RESERVED_ROOT_ATTRS)
+                user = _read_attrs(f.attrs, skip=_RESERVED_ROOT_ATTRS, tuples=False)
+                if "attrs" in f:
+                    user.update(_read_attr_groups(f["attrs"]))
                 out["attrs"] = user or None
     except CorruptFileError:
         raise
@@ -277,15 +349,17 @@ def _load(path, parts=("state", "params", "config", "history", "attrs")) -> RunD
     return RunData(**out)
 
 
-def load_run(path) -> RunData:
+def load_run(path, *, numpy=False) -> RunData:
     """Read everything :func:`save_run` wrote.  Arrays come back as ``jax.numpy``
     arrays with their stored dtype (float64 stays float64 when ``jax_enable_x64``
-    is on; JAX narrows it to float32 otherwise).
+    is on; JAX narrows it to float32 otherwise); with ``numpy`` the history comes
+    back as NumPy arrays, exactly as stored.  Attribute values stored as JSON
+    (lists, nested lists) come back as lists; a Config's as tuples.
 
     Raises ``FileNotFoundError`` if ``path`` does not exist and
     :class:`CorruptFileError` if it is not HDF5, is truncated, or lacks a field.
     """
-    return _load(path)
+    return _load(path, numpy=numpy)
 
 
 def load_state(path):

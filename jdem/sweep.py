@@ -82,7 +82,6 @@ SUMMARY_COLUMNS = ("peak_stress", "youngs_modulus", "critical_strain", "poisson_
 
 #: file-format marker of :func:`save_sweep`
 FORMAT = "jdem-sweep"
-FORMAT_VERSION = 1
 
 
 class SweepTable(dict):
@@ -483,40 +482,39 @@ def _pad_nan(a, r):
 
 # ----------------------------------------------------------------------------- HDF5
 def save_sweep(path, table: SweepTable) -> pathlib.Path:
-    """Write a :class:`SweepTable` to HDF5: one dataset per column under
-    ``/table`` (in column order), the attributes on the root (lists and other
-    non-scalars as JSON).  Parent directories are created; an existing file
-    is replaced.  Returns the path."""
-    import h5py
-
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Write a :class:`SweepTable` to HDF5 with :func:`jdem.io.save_run`: one
+    dataset per column in the history group ``table`` (in column order), the
+    attributes on the root (lists as JSON) plus ``format = "jdem-sweep"``.
+    Parent directories are created; an existing file is replaced.  Returns the
+    path."""
     attrs = dict(getattr(table, "attrs", {}) or {})
-    with h5py.File(path, "w") as f:
-        f.attrs["format"] = FORMAT
-        f.attrs["format_version"] = FORMAT_VERSION
-        json_keys = []
-        for key, value in attrs.items():
-            if isinstance(value, (str, bool, int, float, np.bool_, np.integer, np.floating)):
-                f.attrs[key] = value
-            else:
-                f.attrs[key] = json.dumps(value)
-                json_keys.append(key)
-        f.attrs["_json_attrs"] = json.dumps(json_keys)
-        g = f.create_group("table", track_order=True)
-        for key, value in table.items():
-            io.write_dataset(g, key, value)
-    return path
+    attrs["format"] = FORMAT
+    return io.save_run(path, history={"table": {k: np.asarray(v) for k, v in table.items()}},
+                       attrs=attrs)
 
 
 def load_sweep(path) -> SweepTable:
-    """Read a table written by :func:`save_sweep` (columns as NumPy arrays with
-    their stored dtype; attributes as Python values)."""
+    """Read a table written by :func:`save_sweep` (:func:`jdem.io.load_run`:
+    columns as NumPy arrays with their stored dtype; attributes as Python
+    values).  Tables of the first sweep format (a root ``/table`` group) load
+    too."""
     path = pathlib.Path(path)
     with open_hdf5(path) as f:
         fmt = f.attrs.get("format")
-        if fmt != FORMAT or "table" not in f:
-            raise InputError(f"{path} is not a sweep table (format attribute {fmt!r})")
+        old = "table" in f and "_json_attrs" in f.attrs
+    if fmt != FORMAT:
+        raise InputError(f"{path} is not a sweep table (format attribute {fmt!r})")
+    if old:
+        return _load_sweep_v1(path)
+    rd = io.load_run(path, numpy=True)
+    if "table" not in (rd.history or {}):
+        raise InputError(f"{path} is not a sweep table (no history group 'table')")
+    attrs = {k: v for k, v in (rd.attrs or {}).items() if k != "format"}
+    return SweepTable(dict(rd.history["table"]), attrs)
+
+
+def _load_sweep_v1(path) -> SweepTable:
+    with open_hdf5(path) as f:
         json_keys = set(json.loads(f.attrs.get("_json_attrs", "[]")))
         attrs = {}
         for key, value in f.attrs.items():

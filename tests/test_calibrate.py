@@ -330,6 +330,45 @@ def test_calibration_three_parameters_on_the_targets_packing(tmp_path):
     np.testing.assert_allclose(back["correlation"], res.correlation)
 
 
+def test_calibration_file_layout_and_version_1_files(tmp_path):
+    """save_calibration writes groups (attrs/fit, history/iterations, ...) that
+    plain h5py reads; load_calibration reads them and the flat, prefixed names
+    of format version 1 alike."""
+    import h5py
+
+    from jdem import io
+
+    _, params = model_and_params()
+    res = cb.CalibrationResult(
+        values=dict(E=3.1e10), loss=0.5, start=dict(E=4.2e10),
+        history=dict(loss=np.array([2.0, 0.5]), E=np.array([4.2e10, 3.1e10])), steps=2,
+        converged=True, params=params, curves=dict(strain=np.arange(3.0),
+                                                   fit_stress=np.arange(3.0) * 2),
+        wall_time=1.0, std_errors=dict(E=1e8), intervals=dict(E=(2.9e10, 3.3e10)),
+        correlation=np.eye(1), poorly_determined={}, warnings=["w"])
+    cb.save_calibration(tmp_path / "c.h5", res)
+    with h5py.File(tmp_path / "c.h5", "r") as f:
+        assert f["attrs/fit"].attrs["E"] == 3.1e10
+        np.testing.assert_array_equal(f["history/iterations/loss"][()], [2.0, 0.5])
+    back = cb.load_calibration(tmp_path / "c.h5")
+    v1 = tmp_path / "v1.h5"
+    io.save_run(v1, params=params, history={"iter_loss": res.history["loss"],
+                                            "iter_E": res.history["E"], **res.curves,
+                                            "correlation": np.eye(1)},
+                attrs=dict(fit_E=3.1e10, start_E=4.2e10, stderr_E=1e8,
+                           ci95_E=[2.9e10, 3.3e10], loss=0.5, steps=2, converged=True,
+                           wall_time=1.0, method="lm", jacobian="forward", names=["E"],
+                           diverged=[], warnings=["w"]))
+    old = cb.load_calibration(v1)
+    for got in (back, old):
+        assert got["values"] == res.values and got["start"] == res.start
+        assert got["intervals"] == res.intervals and got["std_errors"] == res.std_errors
+        assert got["steps"] == 2 and got["converged"] and got["warnings"] == ["w"]
+        np.testing.assert_array_equal(got["history"]["loss"], res.history["loss"])
+        np.testing.assert_array_equal(got["curves"]["fit_stress"], res.curves["fit_stress"])
+        np.testing.assert_array_equal(got["correlation"], np.eye(1))
+
+
 def test_interrupted_calibration_resumes_from_its_checkpoint(tmp_path):
     """E from +40 %: a fit stopped after 1 iteration leaves a checkpoint; a fit
     resumed from it keeps that iteration in its history, continues from the

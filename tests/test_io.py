@@ -179,3 +179,23 @@ def test_flipped_byte_inside_a_dataset_is_caught_by_its_checksum(tmp_path):
     with pytest.raises(io.CorruptFileError, match="particles/pos.*c.h5"):
         io.load_run(path)
     assert_same(np.linspace(0.0, 1.0, 50), io.load_history(path)["stress"])   # the rest reads
+
+
+def test_nested_history_and_attrs_are_groups(tmp_path):
+    """Dicts in ``history`` and ``attrs`` become HDF5 groups (any depth) and come
+    back as dicts; plain h5py sees the groups and attributes."""
+    hist = {"loss": np.arange(3.0), "curves": {"strain": np.linspace(0, 1, 4),
+                                                "deep": {"x": np.ones((2, 2), np.int32)}}}
+    attrs = {"what": "test", "fit": {"E": 3e10, "names": ["E"], "inner": {"k": 1}}}
+    path = io.save_run(tmp_path / "n.h5", history=hist, attrs=attrs)
+    rd = io.load_run(path)
+    np.testing.assert_array_equal(rd.history["loss"], hist["loss"])
+    np.testing.assert_array_equal(rd.history["curves"]["strain"], hist["curves"]["strain"])
+    assert rd.history["curves"]["deep"]["x"].dtype == np.int32
+    assert rd.attrs == {"what": "test", "fit": {"E": 3e10, "names": ["E"], "inner": {"k": 1}}}
+    with h5py.File(path, "r") as f:
+        assert f["attrs/fit"].attrs["E"] == 3e10
+        assert f["history/curves/deep/x"].shape == (2, 2)
+        assert f.attrs["format_version"] == 2
+    with pytest.raises(InputError, match="names"):
+        io.save_run(tmp_path / "bad.h5", history={"a": {"b/c": np.zeros(2)}})

@@ -193,6 +193,14 @@ def test_interrupted_run_resumes_bit_for_bit(rect, tmp_path):
     np.testing.assert_array_equal(back.state.particles.pos, full.state.particles.pos)
     np.testing.assert_array_equal(back.state.bonds.normal_force, full.state.bonds.normal_force)
     assert float(np.max(full.history["axial_stress"])) > 1e6       # it really was loaded
+    # a checkpoint of format version 1 (flat raw_ / lab_ names) resumes the same way
+    rd = io.load_run(tmp_path / "c.h5")
+    assert set(rd.attrs["lab"]) == {"test", "record", "n_records", "record_every", "status"}
+    io.save_run(tmp_path / "v1.h5", state=rd.state, params=rd.params, config=rd.config,
+                history={f"raw_{k}": v for k, v in rd.history["raw"].items()},
+                attrs={f"lab_{k}": v for k, v in rd.attrs["lab"].items()})
+    old = lab.run(setup, progress=False, chunk_records=10, resume=tmp_path / "v1.h5")
+    np.testing.assert_array_equal(old.history["axial_stress"], full.history["axial_stress"])
     with pytest.raises(InputError, match="not of the 'biaxial'"):
         lab.run(lab.BIAXIAL.setup(rect, _params(), confining_stress=1e6, max_strain=1e-4),
                 progress=False, resume=tmp_path / "c.h5")
@@ -306,6 +314,10 @@ def test_cli_ucs_writes_png_and_hdf5(tmp_path):
     assert n_rec >= 30     # 4,000 steps, a record every 100
     assert float(np.max(rd.history["axial_stress"])) > 1e6
     assert rd.state is not None and rd.params is not None and rd.config is not None
+    assert set(rd.attrs["settings"]) == {"specimen", "material", "loading"}      # groups
+    assert rd.attrs["settings"]["specimen"]["seed"] == SEED
+    assert rd.attrs["summary"]["peak_stress"] == pytest.approx(
+        float(np.max(rd.history["axial_stress"])))
     with Image.open(out / "failure.gif") as gif:
         assert gif.n_frames == min(40, n_rec) and gif.size[0] > 500
     pvd = (out / "paraview" / "ucs.pvd").read_text()

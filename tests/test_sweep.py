@@ -188,6 +188,27 @@ def test_save_load_round_trip(table, tmp_path):
         np.testing.assert_array_equal(back[key], table[key], err_msg=key)
     assert back.attrs == table.attrs
     assert back.parameters == ["eps_lim", "strength"]
+    from jdem import io
+
+    rd = io.load_run(path, numpy=True)                  # the one loader reads it too
+    np.testing.assert_array_equal(rd.history["table"]["peak_stress"], table["peak_stress"])
+    # a table in the first sweep format (root /table group, JSON attrs listed in
+    # _json_attrs) still loads
+    import h5py
+    import json
+
+    with h5py.File(tmp_path / "v1.h5", "w") as f:
+        f.attrs["format"], f.attrs["format_version"] = sw.FORMAT, 1
+        keys = [k for k, v in table.attrs.items() if not isinstance(v, (str, int, float, bool))]
+        for k, v in table.attrs.items():
+            f.attrs[k] = json.dumps(v) if k in keys else v
+        f.attrs["_json_attrs"] = json.dumps(keys)
+        g = f.create_group("table")
+        for k, v in table.items():
+            g[k] = np.asarray(v)
+    old = sw.load_sweep(tmp_path / "v1.h5")
+    assert old.attrs == table.attrs and list(old) == list(table)
+    np.testing.assert_array_equal(old["peak_stress"], table["peak_stress"])
     with pytest.raises(FileNotFoundError):
         sw.load_sweep(tmp_path / "missing.h5")
     with pytest.raises(InputError, match="not a sweep table"):

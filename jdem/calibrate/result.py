@@ -134,17 +134,20 @@ def partial_result(best, start, history, terms, plist, method, jacobian, wall):
 
 
 def save_calibration(path, res: CalibrationResult):
-    """Write a :class:`CalibrationResult` to HDF5 (``jdem.io.save_run``: params,
-    history = iteration history and curves, attrs = fitted / start values, errors)."""
-    history = {f"iter_{k}": v for k, v in res.history.items()}
-    history.update(res.curves)
+    """Write a :class:`CalibrationResult` to HDF5 (:func:`jdem.io.save_run`):
+    the fitted ``params``; history groups ``iterations`` (``loss`` and each
+    parameter per iteration) and ``curves``, the dataset ``correlation``;
+    attribute groups ``fit``, ``start``, ``stderr``, ``ci95`` (lo, hi) and
+    ``undetermined`` (name -> why), and root attributes ``loss``, ``steps``,
+    ``converged``, ``wall_time``, ``method``, ``jacobian``, ``names``,
+    ``diverged``, ``warnings``."""
+    history = {"iterations": dict(res.history), "curves": dict(res.curves)}
     if np.size(res.correlation):
         history["correlation"] = np.asarray(res.correlation)
-    attrs = {f"fit_{k}": v for k, v in res.values.items()}
-    attrs.update({f"start_{k}": v for k, v in res.start.items()})
-    attrs.update({f"stderr_{k}": v for k, v in res.std_errors.items()})
-    attrs.update({f"ci95_{k}": list(v) for k, v in res.intervals.items()})
-    attrs.update({f"undetermined_{k}": v for k, v in res.poorly_determined.items()})
+    attrs = {"fit": dict(res.values), "start": dict(res.start),
+             "stderr": dict(res.std_errors),
+             "ci95": {k: list(v) for k, v in res.intervals.items()},
+             "undetermined": dict(res.poorly_determined)}
     attrs.update(loss=res.loss, steps=res.steps, converged=res.converged,
                  wall_time=res.wall_time, method=res.method, jacobian=res.jacobian,
                  names=list(res.values), diverged=[list(d) for d in res.diverged],
@@ -155,23 +158,32 @@ def save_calibration(path, res: CalibrationResult):
 def load_calibration(path) -> dict:
     """``{values, start, loss, steps, converged, history, curves, params, method,
     jacobian, std_errors, intervals, correlation, poorly_determined, warnings}`` from
-    :func:`save_calibration` (or a checkpoint)."""
+    :func:`save_calibration` (or a checkpoint); files of format version 1 (flat
+    names with ``fit_`` / ``iter_`` ... prefixes) load too."""
     rd = io.load_run(path)
-    a = rd.attrs or {}
-    hist = {k: np.asarray(v) for k, v in (rd.history or {}).items()}
-    names = list(a.get("names", [k[4:] for k in a if k.startswith("fit_")]))
-    return dict(values={n: float(a[f"fit_{n}"]) for n in names},
-                start={k[6:]: float(v) for k, v in a.items() if k.startswith("start_")},
+    a = dict(rd.attrs or {})
+    hist = dict(rd.history or {})
+    if not isinstance(a.get("fit"), dict):      # format version 1
+        for group, pre in (("fit", "fit_"), ("start", "start_"), ("stderr", "stderr_"),
+                           ("ci95", "ci95_"), ("undetermined", "undetermined_")):
+            a[group] = {k[len(pre):]: v for k, v in a.items()
+                        if isinstance(k, str) and k.startswith(pre)}
+        hist = dict(iterations={k[5:]: v for k, v in hist.items() if k.startswith("iter_")},
+                    curves={k: v for k, v in hist.items()
+                            if not k.startswith("iter_") and k != "correlation"},
+                    **({"correlation": hist["correlation"]} if "correlation" in hist else {}))
+    names = list(a.get("names", list(a["fit"])))
+    return dict(values={n: float(a["fit"][n]) for n in names},
+                start={k: float(v) for k, v in a["start"].items()},
                 loss=float(a["loss"]), steps=int(a["steps"]), converged=bool(a["converged"]),
                 method=a.get("method"), jacobian=a.get("jacobian"),
                 warnings=list(a.get("warnings", [])),
-                std_errors={k[7:]: float(v) for k, v in a.items() if k.startswith("stderr_")},
-                intervals={k[5:]: tuple(v) for k, v in a.items() if k.startswith("ci95_")},
-                poorly_determined={k[13:]: v for k, v in a.items()
-                                   if k.startswith("undetermined_")},
-                correlation=hist.pop("correlation", np.zeros((0, 0))),
-                history={k[5:]: v for k, v in hist.items() if k.startswith("iter_")},
-                curves={k: v for k, v in hist.items() if not k.startswith("iter_")},
+                std_errors={k: float(v) for k, v in a["stderr"].items()},
+                intervals={k: tuple(v) for k, v in a["ci95"].items()},
+                poorly_determined=dict(a["undetermined"]),
+                correlation=np.asarray(hist.get("correlation", np.zeros((0, 0)))),
+                history={k: np.asarray(v) for k, v in hist["iterations"].items()},
+                curves={k: np.asarray(v) for k, v in hist["curves"].items()},
                 params=rd.params)
 
 
