@@ -203,7 +203,7 @@ def test_save_load_round_trip(table, tmp_path):
         for k, v in table.attrs.items():
             f.attrs[k] = json.dumps(v) if k in keys else v
         f.attrs["_json_attrs"] = json.dumps(keys)
-        g = f.create_group("table")
+        g = f.create_group("table", track_order=True)     # as the old writer did
         for k, v in table.items():
             g[k] = np.asarray(v)
     old = sw.load_sweep(tmp_path / "v1.h5")
