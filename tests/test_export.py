@@ -36,3 +36,13 @@ def test_series_of_a_run_holds_the_recorded_motion(tmp_path):
         export.write_series(tmp_path, res.state, {"pos": res.history["pos"]})
     with pytest.raises(InputError, match=".vtu"):
         export.write_vtk(tmp_path / "end.vtk", res.state)
+
+
+def test_a_3d_state_exports_its_spheres_and_bonds(tmp_path):
+    spec = lattice.bonded_lattice("fcc", (2, 2, 2), 1e-3)
+    p = spec.particles._replace(angvel=jnp.ones_like(spec.particles.angvel) * jnp.arange(3.0))
+    state, _ = jdem.make_state(p, bonds=spec.bonds)
+    m = meshio.read(export.write_vtk(tmp_path / "fcc.vtu", state))
+    np.testing.assert_allclose(m.points, np.asarray(p.pos))
+    np.testing.assert_allclose(m.point_data["spin"], np.asarray(p.angvel))
+    assert m.cells_dict["line"].shape[0] == spec.info["n_bonds"] > 0
