@@ -138,7 +138,7 @@ def ucs_settings(config_path=None, small=False, defaults=None) -> dict:
     import copy
     import tomllib
 
-    from jdem.validate import InputError
+    from jdem.validate import InputError, read_text_file
 
     cfg = copy.deepcopy(UCS_DEFAULTS if defaults is None else defaults)
     if small:
@@ -147,14 +147,7 @@ def ucs_settings(config_path=None, small=False, defaults=None) -> dict:
     if config_path is not None:
         path = pathlib.Path(config_path)
         try:
-            data = tomllib.loads(path.read_text(encoding="utf-8-sig"))
-        except FileNotFoundError:
-            raise InputError(f"--config: no such file {path}") from None
-        except IsADirectoryError:
-            raise InputError(f"--config: {path} is a directory, not a TOML file") from None
-        except UnicodeDecodeError as e:
-            raise InputError(f"--config: {path} is not a text TOML file ({e.reason} at byte "
-                             f"{e.start})") from None
+            data = tomllib.loads(read_text_file(path, "--config file", "TOML"))
         except tomllib.TOMLDecodeError as e:
             raise InputError(f"{path}: not valid TOML: {e}") from None
         for sec, vals in data.items():

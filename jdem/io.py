@@ -169,14 +169,14 @@ def _write_history(group: h5py.Group, tree: dict) -> None:
             write_dataset(group, name, value)
 
 
-def _write_attr_groups(group: h5py.Group, tree: dict, what: str) -> None:
-    for name, value in tree.items():
-        sub = group.create_group(name, track_order=True)
-        _write_attrs(sub.attrs, {k: v for k, v in value.items() if not isinstance(v, dict)},
-                     f"{what}[{name!r}]")
-        inner = {k: v for k, v in value.items() if isinstance(v, dict)}
-        if inner:
-            _write_attr_groups(sub, inner, f"{what}[{name!r}]")
+def _write_attr_tree(node, mapping: dict, what: str) -> None:
+    """Plain values of ``mapping`` as attributes of ``node`` (a file or group),
+    dicts as sub-groups, recursively."""
+    _write_attrs(node.attrs, {k: v for k, v in mapping.items() if not isinstance(v, dict)}, what)
+    for name, value in mapping.items():
+        if isinstance(value, dict):
+            _write_attr_tree(node.create_group(name, track_order=True), value,
+                             f"{what}[{name!r}]")
 
 
 def save_run(path, *, state=None, params=None, config=None, history=None, attrs=None,
@@ -204,11 +204,11 @@ def save_run(path, *, state=None, params=None, config=None, history=None, attrs=
         with h5py.File(tmp, "w") as f:
             f.attrs["format_version"] = FORMAT_VERSION
             f.attrs["jdem_version"] = _jdem_version()
-            flat = {k: v for k, v in attrs.items() if not isinstance(v, dict)}
-            _write_attrs(f.attrs, flat, "attrs")
+            _write_attrs(f.attrs, {k: v for k, v in attrs.items() if not isinstance(v, dict)},
+                         "attrs")
             nested = {k: v for k, v in attrs.items() if isinstance(v, dict)}
-            if nested:
-                _write_attr_groups(f.create_group("attrs", track_order=True), nested, "attrs")
+            if nested:   # under /attrs, apart from the state / params / ... groups
+                _write_attr_tree(f.create_group("attrs", track_order=True), nested, "attrs")
             if state is not None:
                 _write_tree(f.create_group("state"), state)
             if params is not None:
@@ -263,12 +263,10 @@ def _read_history(group: h5py.Group, numpy=False) -> dict:
             for k, v in group.items()}
 
 
-def _read_attr_groups(group: h5py.Group) -> dict:
-    out = {}
-    for name, sub in group.items():
-        d = _read_attrs(sub.attrs, tuples=False)
-        d.update(_read_attr_groups(sub))
-        out[name] = d
+def _read_attr_tree(group: h5py.Group) -> dict:
+    """What :func:`_write_attr_tree` wrote: attributes, and sub-groups as dicts."""
+    out = _read_attrs(group.attrs, tuples=False)
+    out.update({name: _read_attr_tree(sub) for name, sub in group.items()})
     return out
 
 
@@ -340,7 +338,7 @@ def _load(path, parts=("state", "params", "config", "history", "attrs"), numpy=F
             if "attrs" in parts:
                 user = _read_attrs(f.attrs, skip=_RESERVED_ROOT_ATTRS, tuples=False)
                 if "attrs" in f:
-                    user.update(_read_attr_groups(f["attrs"]))
+                    user.update(_read_attr_tree(f["attrs"]))
                 out["attrs"] = user or None
     except CorruptFileError:
         raise

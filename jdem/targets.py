@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jdem.lab.summary import MODULUS_WINDOW, fit_modulus
-from jdem.validate import InputError
+from jdem.validate import InputError, read_text_file
 
 
 class Target(NamedTuple):
@@ -196,47 +196,34 @@ def load_target(source, *, strain_column=0, stress_column=1, lateral_column=None
 
 
 def _read_csv(path, ce, cs, cl=None):
-    if not path.exists():
-        raise InputError(f"target file {str(path)!r} does not exist")
-    if not path.is_file():
-        raise InputError(f"target file {str(path)!r} is not a file")
+    text = read_text_file(path, "target file", "CSV")
     rows = []
     header = False
-    try:
-        return _parse_csv(path, ce, cs, cl, rows, header)
-    except UnicodeDecodeError as e:
-        raise InputError(f"target file {str(path)!r} is not a text CSV file ({e.reason} at "
-                         f"byte {e.start})") from None
-
-
-def _parse_csv(path, ce, cs, cl, rows, header):
-    # utf-8-sig: a byte-order mark (as spreadsheet programs write) is not part of line 1
-    with open(path, newline="", encoding="utf-8-sig") as f:
-        for n, row in enumerate(csv.reader(f)):
-            if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
-                continue
-            if cl == "auto":   # decided by the first row of numbers
-                try:
-                    float(row[ce]), float(row[cs])
-                except (ValueError, IndexError):
-                    pass
-                else:
-                    cl = max(ce, cs) + 1 if len(row) > max(ce, cs) + 1 else None
-            cl_row = None if cl == "auto" else cl
-            cols = (ce, cs) if cl_row is None else (ce, cs, cl_row)
+    for n, row in enumerate(csv.reader(text.splitlines())):
+        if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
+            continue
+        if cl == "auto":   # decided by the first row of numbers
             try:
-                rows.append(tuple(float(row[c]) for c in (ce, cs))
-                            + (() if cl_row is None else (_reading(row[cl_row]),)))
-            except ValueError:
-                # only the first line may be a header, and a header holds no number
-                # in these columns (a first row with a typo is an error, not a header)
-                if rows or header or any(_is_number(row[c]) for c in cols if c < len(row)):
-                    raise InputError(f"{path}: line {n + 1} is not {len(cols)} numbers: "
-                                     f"{row!r}") from None
-                header = True
-            except IndexError:
-                raise InputError(f"{path}: line {n + 1} has {len(row)} column(s), need "
-                                 f"{max(cols) + 1}: {row!r}") from None
+                float(row[ce]), float(row[cs])
+            except (ValueError, IndexError):
+                pass
+            else:
+                cl = max(ce, cs) + 1 if len(row) > max(ce, cs) + 1 else None
+        cl_row = None if cl == "auto" else cl
+        cols = (ce, cs) if cl_row is None else (ce, cs, cl_row)
+        try:
+            rows.append(tuple(float(row[c]) for c in (ce, cs))
+                        + (() if cl_row is None else (_reading(row[cl_row]),)))
+        except ValueError:
+            # only the first line may be a header, and a header holds no number
+            # in these columns (a first row with a typo is an error, not a header)
+            if rows or header or any(_is_number(row[c]) for c in cols if c < len(row)):
+                raise InputError(f"{path}: line {n + 1} is not {len(cols)} numbers: "
+                                 f"{row!r}") from None
+            header = True
+        except IndexError:
+            raise InputError(f"{path}: line {n + 1} has {len(row)} column(s), need "
+                             f"{max(cols) + 1}: {row!r}") from None
     if not rows:
         raise InputError(f"{path} holds no (strain, stress) rows")
     a = np.asarray(rows)

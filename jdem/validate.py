@@ -12,11 +12,15 @@ Where each check runs:
   by hand or by ``_replace`` do not pass through ``make_particles``);
 * :func:`check_materials` -- the host loop :func:`jdem.simulate.run` and
   :func:`jdem.timestep.check_timestep`, where particles meet ``Params``;
+* :func:`read_text_file` -- the target CSV (:func:`jdem.targets.load_target`)
+  and the ``--config`` TOML of the CLI;
 * the dashpots (``contact_damping``, ``bond_damping``, ``viscous_damping``) have
   no fixed upper bound: the critical time step of :mod:`jdem.timestep` includes
   them, and :func:`jdem.timestep.check_timestep` refuses a step above it.
 """
 from __future__ import annotations
+
+import pathlib
 
 import numpy as np
 
@@ -262,3 +266,20 @@ def check_params(params, dim=None):
                          + ", ".join(f"params.{k} {v}" for k, v in lengths.items()))
     if dim is not None and np.shape(params.gravity)[-1:] != (dim,):
         raise InputError(f"params.gravity must have shape ({dim},), got {np.shape(params.gravity)}")
+
+
+def read_text_file(path, what, kind):
+    """The text of the input file ``path``, read as UTF-8 with a leading
+    byte-order mark (as spreadsheet programs write) dropped.  A missing file, a
+    folder or a binary file raises :class:`InputError` naming ``what`` (e.g.
+    "target file") and ``kind`` (e.g. "CSV")."""
+    path = pathlib.Path(path)
+    if not path.exists():
+        raise InputError(f"{what} {str(path)!r} does not exist")
+    if not path.is_file():
+        raise InputError(f"{what} {str(path)!r} is a directory, not a file")
+    try:
+        return path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise InputError(f"{what} {str(path)!r} is not a text {kind} file ({e.reason} at "
+                         f"byte {e.start})") from None

@@ -113,8 +113,8 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
         if float(loss) < best[0]:
             best = (float(loss), vals)
         if checkpoint is not None:
-            save_calibration(checkpoint, partial_result(best, start, history, terms, plist, method,
-                                              jacobian, time.time() - t0))
+            save_calibration(checkpoint, partial_result(best, start, history, terms, plist,
+                                                        method, jacobian, time.time() - t0))
         if bar is not None:
             bar.update(1)
             bar.set_postfix(loss=f"{float(loss):.3g}")

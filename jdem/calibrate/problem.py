@@ -18,6 +18,7 @@ from jdem.targets import (LossWeights, Scalar, Target, check_scalar, curve_resid
                           load_target, scalar_residuals)
 from jdem.validate import InputError
 
+
 class Term(NamedTuple):
     """One simulated test and what it is compared with: a :class:`Target` curve
     or a tuple of :class:`Scalar` figures."""

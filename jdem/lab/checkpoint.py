@@ -7,8 +7,9 @@ grown), the raw records so far (the history group ``raw``, records on axis 0)
 and the attribute group ``lab``: ``test``, ``record`` (records done),
 ``n_records``, ``record_every`` and ``status`` (``running``, ``done``,
 ``interrupted``).  Checkpoints of format version 1 (``raw_<name>`` history
-entries and ``lab_<name>`` root attributes) still resume.  Resuming needs the same set-up (the same test,
-specimen and options; a longer run is allowed) and continues bit-for-bit.
+entries and ``lab_<name>`` root attributes) still resume.  Resuming needs the
+same set-up (the same test, specimen and options; a longer run is allowed) and
+continues bit-for-bit.
 """
 from __future__ import annotations
 
