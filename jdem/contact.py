@@ -168,12 +168,17 @@ def pair_law(contacts: Contacts, particles: Particles, params: Params, config: C
     return g, fn, kn, kt
 
 
-def contact_forces(contacts: Contacts, particles: Particles, params: Params, config: Config):
+def contact_forces(contacts: Contacts, particles: Particles, params: Params, config: Config,
+                   *, report_depth=False):
     """Forces of all listed pairs.
 
     Returns ``(contacts, force (N, d), torque (N,) | (N, 3), n_touching (N,))``:
     the list with updated tangential history, the summed contact force and torque
-    on each particle, and each particle's number of touching contacts.
+    on each particle, and each particle's number of touching contacts.  With
+    ``report_depth`` a fifth entry, ``()`` the deepest overlap of a touching pair
+    as a fraction of the pair's smaller radius (0 when nothing touches): above 1,
+    one centre has crossed the other particle's surface and the pair is about to
+    pass through itself (tunnelling; :mod:`jdem.integrate` stops the run there).
 
     Vectors are handled as component tuples (see :mod:`jdem.kinematics`).
     """
@@ -221,7 +226,14 @@ def contact_forces(contacts: Contacts, particles: Particles, params: Params, con
     torque = total[:, d:] if total.shape[1] > d + 1 else total[:, d]
     ones = touching.astype(jnp.int32)
     count = add(ones, i) + add(ones, j)
-    return contacts._replace(shear=jnp.stack(shear, axis=-1)), force, torque, count
+    contacts = contacts._replace(shear=jnp.stack(shear, axis=-1))
+    if not report_depth:
+        return contacts, force, torque, count
+    r_small = jnp.minimum(p.radius[i], p.radius[j])
+    overlap = 2.0 * (p.radius[i] - a_i)
+    depth = jnp.max(jnp.where(touching, overlap / jnp.where(r_small > 0, r_small, 1.0), 0.0),
+                    initial=0.0)
+    return contacts, force, torque, count, depth
 
 
 def pair_stiffness(contacts: Contacts, particles: Particles, params: Params, config: Config):

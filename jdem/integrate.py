@@ -32,8 +32,14 @@ def forces(state: State, params: Params, config: Config):
     Returns ``(state, force (N, d), torque)`` where ``state`` carries the updated
     contact, wall and bond histories.
     """
+    return _forces(state, params, config)[:3]
+
+
+def _forces(state: State, params: Params, config: Config):
+    """:func:`forces` plus the deepest contact overlap over the smaller radius."""
     p = state.particles
-    contacts, f, t, _ = contact.contact_forces(state.contacts, p, params, config)
+    contacts, f, t, _, depth = contact.contact_forces(state.contacts, p, params, config,
+                                                      report_depth=True)
     bonds = state.bonds
     if bonds.i.shape[0] > 0:
         bonds, fb, tb = bond.bond_forces(bonds, p, params, config.dim, state.step)
@@ -41,7 +47,7 @@ def forces(state: State, params: Params, config: Config):
     walls, fw, tw, _ = walls_mod.wall_forces(state.walls, p, params, config)
     f = f + fw + p.ext_force + p.gravity_mass[:, None] * params.gravity
     t = t + tw + p.ext_torque
-    return state._replace(contacts=contacts, walls=walls, bonds=bonds), f, t
+    return state._replace(contacts=contacts, walls=walls, bonds=bonds), f, t, depth
 
 
 def _expand(mask, like):
@@ -62,7 +68,7 @@ def physics_step(state: State, params: Params, config: Config, boundary=None) ->
     if boundary is not None:
         fn, data = boundary
         state, *extra = fn(state, params, data)
-    state, force, torque = forces(state, params, config)
+    state, force, torque, depth = _forces(state, params, config)
     if extra:
         force = force + extra[0]
         if len(extra) > 1:
@@ -76,10 +82,34 @@ def physics_step(state: State, params: Params, config: Config, boundary=None) ->
     angvel = jnp.where(free_w, p.angvel + torque / _expand(p.inertia, torque) * dt, p.angvel)
     pos = p.pos + jnp.where(_expand(p.valid, vel), vel, 0.0) * dt  # 000 eq 2-16, 2-17
     particles = p._replace(pos=pos, vel=vel, angvel=angvel)
-    finite = jnp.all(jnp.isfinite(pos)) & jnp.all(jnp.isfinite(vel)) & jnp.all(jnp.isfinite(angvel))
-    bad = jnp.where((state.first_bad_step < 0) & ~finite, state.step, state.first_bad_step)
+    ok = healthy(particles, dt, depth)
+    bad = jnp.where((state.first_bad_step < 0) & ~ok, state.step, state.first_bad_step)
     return state._replace(particles=particles, walls=walls_mod.advance(state.walls, dt),
                           step=state.step + 1, time=state.time + dt, first_bad_step=bad)
+
+
+def healthy(particles, dt, depth):
+    """The divergence guard of one step, cheap enough to run at every step: all
+    positions and velocities finite, no valid particle moving more than half its
+    radius in one step (explicit contact dynamics resolve an approach over many
+    steps: ~30 per contact period at the recommended step, 000 eq 3-26), and no
+    pair overlapping by more than its smaller radius (``depth`` from
+    :func:`jdem.contact.contact_forces`: the pair is passing through itself).
+    Returns a () bool.  The host loop names the quantity, particle and step
+    that failed (:func:`jdem.simulate.diagnose`)."""
+    p = particles
+    finite = jnp.all(jnp.isfinite(p.pos)) & jnp.all(jnp.isfinite(p.vel)) \
+        & jnp.all(jnp.isfinite(p.angvel))
+    return finite & (max_step_travel(p, dt) <= 0.5) & (depth <= 1.0)
+
+
+def max_step_travel(particles, dt):
+    """() largest |v| dt / r over the valid particles: the distance a particle
+    moves in one step, in its own radii."""
+    p = particles
+    speed = jnp.sqrt(jnp.sum(p.vel * p.vel, axis=-1))
+    return jnp.max(jnp.where(p.valid, speed * dt / jnp.where(p.radius > 0, p.radius, 1.0), 0.0),
+                   initial=0.0)
 
 
 def refresh_neighbors(state: State, config: Config) -> State:

@@ -11,9 +11,15 @@
 
   - checks the neighbour list: on overflow it re-allocates larger from the
     chunk's starting state and runs the chunk again (nothing is dropped);
-  - checks for NaN/Inf: it stops with :class:`SimulationDiverged`, which names
-    the first bad step and carries the last good state (the state one step
-    before it);
+  - checks the divergence guard that every step evaluates
+    (:func:`jdem.integrate.healthy`: non-finite values, a particle moving more
+    than half its radius in one step, a pair overlapping by more than its
+    smaller radius): it stops with :class:`SimulationDiverged`, which names the first
+    bad step, the quantity and the particle (:func:`diagnose`) and carries the
+    last good state (the state one step before it).  In a batched run a failing
+    member is set aside instead (its particles made inert, its later records
+    NaN, its last good state and reason in ``RunResult.failures``) and the
+    others go on; only when every member failed does the run stop;
   - shows a progress bar (tqdm) and collects the history.
 """
 from __future__ import annotations
@@ -25,34 +31,89 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jdem import integrate, neighbors
+from jdem import contact, integrate, neighbors
 from jdem.measure import basic_observables
 from jdem.state import Config, Params, State, empty_bonds, no_walls
 from jdem.validate import InputError, check_materials, check_params, check_particles, require_int
 
 
+class MemberFailure(NamedTuple):
+    """A batch member set aside by a batched run: ``member`` its index, ``step``
+    the first step that failed the guard, ``reason`` what failed (from
+    :func:`diagnose`), ``last_good_state`` its state before that step."""
+
+    member: int
+    step: int
+    reason: str
+    last_good_state: object
+
+
 class RunResult(NamedTuple):
     """state: final State; config: the Config in force at the end (capacities may
     have grown); history: dict of NumPy arrays, records along axis 0 (batched
-    runs: batch along axis 0, records along axis 1)."""
+    runs: batch along axis 0, records along axis 1; a failed member's records
+    from its failure on are NaN); failures: a :class:`MemberFailure` per batch
+    member that was set aside (empty when all finished)."""
 
     state: State
     config: Config
     history: dict
+    failures: tuple = ()
 
 
 class SimulationDiverged(RuntimeError):
-    """A position or velocity became NaN/Inf.  ``step`` is the first bad step;
-    ``last_good_state`` the state just before it; ``history`` what was recorded."""
+    """A step failed the divergence guard (:func:`jdem.integrate.healthy`).
+    ``step`` is the first bad step; ``reason`` says what failed, where;
+    ``last_good_state`` is the state just before that step (or, when noted, the
+    start of the record or chunk that holds it); ``history`` what was recorded."""
 
-    def __init__(self, step, last_good_state, history):
+    def __init__(self, step, last_good_state, history, reason=""):
+        why = reason or "non-finite positions or velocities"
         super().__init__(
-            f"simulation diverged: non-finite positions/velocities at step {step}; "
-            f"the last good state (step {step}) is kept in .last_good_state "
-            f"(is params.dt below the critical step? see jdem.timestep)")
+            f"simulation diverged at step {step}: {why}; the state before that step is "
+            f"kept in .last_good_state (is params.dt below the critical step? see "
+            f"jdem.timestep)")
         self.step = step
         self.last_good_state = last_good_state
         self.history = history
+        self.reason = why
+
+
+def diagnose(state: State, params: Params, config: Config, boundary=None) -> str:
+    """Why the step from ``state`` (one system) fails the guard of
+    :func:`jdem.integrate.healthy`, naming the quantity, the particle(s) and the
+    value; ``""`` if it does not.  Host-side; used when a run stops."""
+    s0 = integrate.refresh_neighbors(state, config)
+    s1 = integrate.physics_step(s0, params, config, boundary)
+    p0, p1 = s0.particles, s1.particles
+    step = int(np.asarray(s0.step))
+    valid = np.asarray(p1.valid)
+    reasons = []
+    for name in ("pos", "vel", "angvel"):
+        a = np.asarray(getattr(p1, name)).reshape(valid.shape[0], -1)
+        bad = np.flatnonzero(~np.all(np.isfinite(a), axis=1))
+        if bad.size:
+            reasons.append(f"particle {int(bad[0])} has a non-finite {name} after step {step} "
+                           f"({bad.size} particle(s) in all)")
+    speed = np.linalg.norm(np.asarray(p1.vel), axis=-1)
+    travel = np.where(valid & np.isfinite(speed), speed * np.asarray(params.dt), 0.0) \
+        / np.where(np.asarray(p1.radius) > 0, np.asarray(p1.radius), 1.0)
+    k = int(np.argmax(travel)) if travel.size else 0
+    if travel.size and travel[k] > 0.5:
+        reasons.append(f"particle {k} moves {travel[k]:.3g} of its radius in step {step} "
+                       f"(speed {speed[k]:.3g} m/s; the guard allows half a radius per step)")
+    g = contact.pair_geometry(s0.contacts, p0)
+    i, j = np.asarray(s0.contacts.i), np.asarray(s0.contacts.j)
+    rad = np.asarray(p0.radius)
+    if i.size:
+        ratio = np.where(np.asarray(g.touching),
+                         np.asarray(g.overlap) / np.maximum(np.minimum(rad[i], rad[j]), 1e-300), 0)
+        c = int(np.argmax(ratio))
+        if ratio[c] > 1.0:
+            reasons.append(f"particles {int(i[c])} and {int(j[c])} overlap by {ratio[c]:.4g} of "
+                           f"the smaller radius at step {step}: they are passing through each "
+                           f"other (too fast for the contact stiffness and dt)")
+    return "; ".join(reasons)
 
 
 # ----------------------------------------------------------------------------- set-up
@@ -153,6 +214,9 @@ def advance(state: State, params: Params, config: Config, n_steps, *, batched=Fa
 def _check_inputs(state: State, params: Params, config: Config, batched: bool, check_dt: bool):
     from jdem.timestep import check_timestep
 
+    if batched != (np.ndim(state.step) == 1):
+        raise InputError(f"batched = {batched} but the state {'has' if np.ndim(state.step) else 'has no'}"
+                         f" leading batch axis (state.step has shape {np.shape(state.step)})")
     if state.particles.pos.shape[-1] != config.dim:
         raise InputError(f"state has dimension {state.particles.pos.shape[-1]} but config.dim = {config.dim}")
     check_params(params, config.dim)
@@ -177,8 +241,11 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
                   :func:`jdem.measure.basic_observables`); must be a module-level
                   function or otherwise reused object so compiled chunks are cached
     chunk_steps   steps per jitted chunk (default about 5,000, a multiple of record_every)
-    batched       leading batch axis on state and params (a parameter sweep)
-    check_dt      raise if ``params.dt`` exceeds the critical step
+    batched       leading batch axis on state and params (a parameter sweep); a
+                  member that fails is set aside (``RunResult.failures``) and the
+                  others go on
+    check_dt      raise if ``params.dt`` exceeds the critical step, at the start
+                  and, with the current contacts, after every chunk
     boundary      optional ``(fn, data)`` boundary conditions applied every step
                   (see :func:`jdem.integrate.physics_step`); ``fn`` must be a
                   module-level function so compiled chunks are cached, ``data``
@@ -201,6 +268,7 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
 
         bar = tqdm(total=n_steps, desc=desc, unit="step", leave=False)
     history: list[dict] = []
+    failures: list[MemberFailure] = []
     done = 0
     try:
         while done < total_records:
@@ -215,14 +283,18 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
                                                         state.bonds)
                 state = state._replace(contacts=contacts)
                 continue  # redo the chunk with room for every pair
-            bad = np.asarray(new_state.first_bad_step)
+            bad = np.asarray(new_state.first_bad_step).reshape(-1)
+            hist = jax.tree_util.tree_map(np.asarray, hist)
             if np.any(bad >= 0):
-                first = int(np.min(bad[bad >= 0]))
-                start = int(np.min(np.asarray(state.step)))
-                good = advance(state, params, config, first - start, batched=batched,
-                               boundary=_with(boundary_fn, data))
-                raise SimulationDiverged(first, good, _stack(history, batched))
-            history.append(jax.tree_util.tree_map(np.asarray, hist))
+                new_state = _set_aside(state, new_state, params, config, bad, failures,
+                                       hist, record_every, batched, boundary_fn, data,
+                                       lambda: _stack(history, batched))
+            if check_dt:
+                new_state = _check_current_step(new_state, params, config, failures, hist,
+                                                batched, lambda: _stack(history, batched))
+            for f in failures:   # members set aside earlier: no valid records
+                _blank_member(hist, f.member, 0)
+            history.append(hist)
             state = new_state
             done += n_rec
             if bar is not None:
@@ -230,7 +302,106 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
     finally:
         if bar is not None:
             bar.close()
-    return RunResult(state, config, _stack(history, batched))
+    for f in failures:   # a set-aside member ends in its last good state
+        state = _put_member(state, f.member, f.last_good_state)
+    if failures:
+        import warnings
+
+        warnings.warn("; ".join(f"member {f.member} set aside at step {f.step}: {f.reason}"
+                                for f in failures), RuntimeWarning, stacklevel=2)
+    return RunResult(state, config, _stack(history, batched), tuple(failures))
+
+
+def _member(tree, b):
+    return jax.tree_util.tree_map(lambda a: a[b], tree)
+
+
+def _put_member(tree, b, value):
+    return jax.tree_util.tree_map(lambda a, v: a.at[b].set(v), tree, value)
+
+
+def _blank_member(hist, b, first_record):
+    """NaN the floating-point records of member ``b`` from ``first_record`` on
+    (history of one chunk: records on axis 0, members on axis 1)."""
+    for key, v in hist.items():
+        if np.issubdtype(v.dtype, np.floating):
+            v = v.copy()
+            v[first_record:, b] = np.nan
+            hist[key] = v
+
+
+def step_margin(state: State, params: Params, config: Config, batched=False):
+    """``params.dt`` over the critical step of the current contacts and bonds,
+    dashpots included (:func:`jdem.timestep.critical_timestep`); (B,) when
+    batched.  Above 1 the explicit scheme is unstable from here on."""
+    from jdem.timestep import critical_timestep
+
+    crit = (jax.vmap(lambda s, p: critical_timestep(s, p, config))(state, params) if batched
+            else critical_timestep(state, params, config))
+    return np.asarray(params.dt) / np.asarray(crit)
+
+
+def _check_current_step(state, params, config, failures, hist, batched, history_so_far):
+    """Between chunks: stop (one system) or set aside (a batch member) when the
+    critical step of the current contacts has fallen below ``params.dt``, with
+    the chunk's end state, still finite, as the last good state."""
+    ratio = np.atleast_1d(step_margin(state, params, config, batched))
+    done = {f.member for f in failures}
+    for b in np.flatnonzero(ratio > 1.0):
+        if int(b) in done:
+            continue
+        good = _member(state, b) if batched else state
+        step = int(np.asarray(good.step))
+        dt = float(np.asarray(params.dt).reshape(-1)[b])
+        reason = (f"the critical time step of the current contacts fell to {dt / ratio[b]:.4g} s, "
+                  f"below params.dt = {dt:.4g} s, by step {step} (dashpots included; "
+                  f"jdem.timestep.critical_timestep)")
+        if not batched:
+            raise SimulationDiverged(step, good, history_so_far(), reason)
+        failures.append(MemberFailure(int(b), step, reason, good))
+        if len(failures) == ratio.size:
+            raise SimulationDiverged(step, good, history_so_far(),
+                                     f"every member failed; member {int(b)} last: {reason}")
+        state = _put_member(state, b, _inert(good))
+    return state
+
+
+def _inert(state):
+    """``state`` with every particle invalid: no forces, no motion, no trouble."""
+    return state._replace(particles=state.particles._replace(
+        valid=jnp.zeros_like(state.particles.valid)))
+
+
+def _set_aside(state, new_state, params, config, bad, failures, hist, record_every, batched,
+               boundary_fn, data, history_so_far):
+    """Handle the members of a chunk that failed the guard.  One system, or a
+    batch whose every member has now failed: raise :class:`SimulationDiverged`
+    with the state before the first bad step.  Otherwise record a
+    :class:`MemberFailure` for each new one, blank its records from the bad step
+    on, and return ``new_state`` with that member made inert (its last good
+    state with every particle invalid: no forces, no motion, no trouble)."""
+    start = int(np.min(np.asarray(state.step)))
+    boundary = _with(boundary_fn, data)
+    if not batched:
+        first = int(bad[0])
+        good = advance(state, params, config, first - start, boundary=boundary)
+        raise SimulationDiverged(first, good, history_so_far(),
+                                 diagnose(good, params, config, boundary))
+    for b in np.flatnonzero(bad >= 0):
+        first = int(bad[b])
+        good = _member(advance(state, params, config, first - start, batched=True,
+                               boundary=boundary), b)
+        one = None if boundary_fn is None else (boundary_fn, _member(data, b))
+        reason = diagnose(good, _member(params, b), config, one)
+        failures.append(MemberFailure(int(b), first, reason, good))
+        if len(failures) == bad.size:
+            f0 = min(failures, key=lambda f: f.step)
+            raise SimulationDiverged(f0.step, f0.last_good_state, history_so_far(),
+                                     f"every member failed; member {f0.member} first: "
+                                     f"{f0.reason}")
+        _blank_member(hist, b, max(0, (first - start) // record_every))
+        new_state = _put_member(new_state, b, _inert(good))
+    return new_state
 
 
 def _chunk_records(total: int, target: int) -> int:

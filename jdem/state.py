@@ -179,7 +179,9 @@ class State(NamedTuple):
 
     step   ()  int32 number of steps taken
     time   ()  simulated time [s]
-    first_bad_step () int32 first step whose state was non-finite, -1 if none
+    first_bad_step () int32 first step that failed the divergence guard
+                   (jdem.integrate.healthy: non-finite, a particle moving over half its
+                   radius in one step, a pair overlapping by over its smaller radius), -1 if none
     """
 
     particles: Particles

@@ -1,0 +1,102 @@
+"""The divergence guard (jdem.integrate.healthy, jdem.simulate.run) and the
+isolation of failing members in batched runs (issue: reliability)."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jdem
+from jdem import contact, timestep
+from jdem.batch import broadcast_batch
+from jdem.validate import InputError
+
+from test_engine import _box_walls, _loose_discs
+
+
+def _box(gap=-0.1):
+    pos, rad, (w, h) = _loose_discs(4, 4, gap=gap, seed=9)
+    p = jdem.make_particles(pos, rad)
+    params = jdem.make_params(dim=2, kn=1e6, ks=1e6, friction=0.3)
+    state, cfg = jdem.make_state(p, walls=_box_walls((0, 0), (w, h), len(pos)))
+    return state, params, cfg, float(timestep.critical_timestep(state, params, cfg))
+
+
+def test_two_discs_passing_through_each_other_are_stopped():
+    """Head-on at 30 m/s relative with k_n = 1e6 N/m the overlap would reach
+    v sqrt(m*/k) = 1.9 r: the guard stops the run when the overlap passes r."""
+    r = 1e-3
+    p = jdem.make_particles(np.array([[0.0, 0.0], [2.5 * r, 0.0]]), np.array([r, r]),
+                            vel=np.array([[15.0, 0.0], [-15.0, 0.0]]))
+    params = jdem.make_params(dim=2, kn=1e6, ks=1e6, friction=0.3, dt=2e-6)
+    state, cfg = jdem.make_state(p)
+    with pytest.raises(jdem.SimulationDiverged) as info:
+        jdem.run(state, params, cfg, 2000, record_every=10, progress=False)
+    err = info.value
+    assert "particles 0 and 1 overlap" in err.reason and "passing through" in err.reason
+    good = err.last_good_state
+    gap = float(np.diff(np.asarray(good.particles.pos)[:, 0])[0])
+    assert 0.9 * r < gap < r        # overlap just past r: the centres have not crossed
+
+
+def test_hertz_pair_whose_critical_step_falls_below_dt_is_stopped_between_chunks():
+    """A Hertz contact stiffens as it is pressed: a step 0.9 x the critical step
+    at first contact is 1.1 x it at 2.5 x the overlap.  The run stops when the
+    re-estimated critical step falls below dt, before anything blows up."""
+    r, d0 = 1e-3, 1e-5
+    p = jdem.make_particles(np.array([[0.0, 0.0], [2 * r - d0, 0.0]]), np.array([r, r]),
+                            fixed_vel=np.array([[True, True], [False, True]]))
+    params = jdem.make_params(dim=2, youngs=1e9, poisson=0.25, friction=0.3)
+    state, cfg = jdem.make_state(p, contact_model="hertz")
+    fn, _, _ = contact.normal_law(jnp.asarray(d0), jnp.asarray(r / 2), jnp.asarray(0),
+                                  jnp.asarray(0), params, "hertz")
+    state = state._replace(particles=state.particles._replace(
+        ext_force=jnp.asarray([[0.0, 0.0], [-4 * float(fn), 0.0]])))
+    crit = float(timestep.critical_timestep(state, params, cfg))
+    params = params._replace(dt=jnp.asarray(0.9 * crit), viscous_damping=jnp.asarray(0.02 / crit))
+    with pytest.raises(jdem.SimulationDiverged) as info:
+        jdem.run(state, params, cfg, 20_000, record_every=10, chunk_steps=10, progress=False)
+    err = info.value
+    assert "critical time step of the current contacts fell" in err.reason
+    good = err.last_good_state
+    assert np.all(np.isfinite(np.asarray(good.particles.vel)))
+    assert float(timestep.critical_timestep(good, params, cfg)) < float(params.dt)
+
+
+def test_a_diverging_member_is_set_aside_and_the_other_finishes_unchanged():
+    state, params, cfg, crit = _box()
+    good = params._replace(dt=jnp.asarray(0.1 * crit))
+    bad = params._replace(dt=jnp.asarray(3 * crit))
+    both = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), good, bad)
+    with pytest.warns(RuntimeWarning, match="member 1 set aside"):
+        res = jdem.run(broadcast_batch(state, 2), both, cfg, 3000, record_every=100,
+                       progress=False, batched=True, check_dt=False)
+    alone = jdem.run(state, good, cfg, 3000, record_every=100, progress=False)
+    (failure,) = res.failures
+    assert failure.member == 1 and "of its radius" in failure.reason
+    for key, v in res.history.items():
+        np.testing.assert_array_equal(v[0], alone.history[key])   # bit for bit
+        if v.dtype.kind == "f":
+            assert np.all(np.isnan(v[1][failure.step // 100:]))
+    np.testing.assert_array_equal(np.asarray(res.state.particles.pos[0]),
+                                  np.asarray(alone.state.particles.pos))
+    # the set-aside member ends in its last good state, valid and finite
+    assert np.all(np.asarray(res.state.particles.valid[1]) == np.asarray(state.particles.valid))
+    assert np.all(np.isfinite(np.asarray(res.state.particles.pos[1])))
+
+
+def test_a_batch_whose_every_member_fails_raises():
+    state, params, cfg, crit = _box()
+    bad = broadcast_batch(params._replace(dt=jnp.asarray(3 * crit)), 2)
+    with pytest.raises(jdem.SimulationDiverged, match="every member failed"):
+        jdem.run(broadcast_batch(state, 2), bad, cfg, 1000, record_every=100, progress=False,
+                 batched=True, check_dt=False)
+
+
+def test_batched_flag_that_does_not_match_the_state_is_refused():
+    state, params, cfg, crit = _box()
+    params = params._replace(dt=jnp.asarray(0.1 * crit))
+    with pytest.raises(InputError, match="batched = True"):
+        jdem.run(state, params, cfg, 100, record_every=100, progress=False, batched=True)
+    with pytest.raises(InputError, match="batched = False"):
+        jdem.run(broadcast_batch(state, 2), broadcast_batch(params, 2), cfg, 100,
+                 record_every=100, progress=False)
