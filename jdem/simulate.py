@@ -273,6 +273,7 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
     try:
         while done < total_records:
             n_rec = min(per_chunk, total_records - done)
+            earlier = [f.member for f in failures]
             chunk = _compiled_chunk(config, n_rec, record_every, observe, batched, boundary_fn)
             new_state, hist = chunk(state, params, data)
             if bool(neighbors.overflowed(new_state.contacts, config)):
@@ -290,10 +291,10 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
                                        hist, record_every, batched, boundary_fn, data,
                                        lambda: _stack(history, batched))
             if check_dt:
-                new_state = _check_current_step(new_state, params, config, failures, hist,
-                                                batched, lambda: _stack(history, batched))
-            for f in failures:   # members set aside earlier: no valid records
-                _blank_member(hist, f.member, 0)
+                new_state = check_current_step(new_state, params, config, failures, batched,
+                                               lambda: _stack(history, batched))
+            for b in earlier:    # members set aside before this chunk
+                blank_member_records(hist, b, 0)
             history.append(hist)
             state = new_state
             done += n_rec
@@ -320,7 +321,7 @@ def _put_member(tree, b, value):
     return jax.tree_util.tree_map(lambda a, v: a.at[b].set(v), tree, value)
 
 
-def _blank_member(hist, b, first_record):
+def blank_member_records(hist, b, first_record):
     """NaN the floating-point records of member ``b`` from ``first_record`` on
     (history of one chunk: records on axis 0, members on axis 1)."""
     for key, v in hist.items():
@@ -341,10 +342,13 @@ def step_margin(state: State, params: Params, config: Config, batched=False):
     return np.asarray(params.dt) / np.asarray(crit)
 
 
-def _check_current_step(state, params, config, failures, hist, batched, history_so_far):
-    """Between chunks: stop (one system) or set aside (a batch member) when the
-    critical step of the current contacts has fallen below ``params.dt``, with
-    the chunk's end state, still finite, as the last good state."""
+def check_current_step(state, params, config, failures, batched, history_so_far):
+    """Between chunks: stop (one system: :class:`SimulationDiverged`) or set
+    aside (a batch member: a :class:`MemberFailure` appended to ``failures``,
+    the member made inert in the returned state) when the critical step of the
+    current contacts has fallen below ``params.dt``, with the chunk's end state,
+    still finite, as the last good state.  ``history_so_far()`` gives the
+    history for the error."""
     ratio = np.atleast_1d(step_margin(state, params, config, batched))
     done = {f.member for f in failures}
     for b in np.flatnonzero(ratio > 1.0):
@@ -362,11 +366,11 @@ def _check_current_step(state, params, config, failures, hist, batched, history_
         if len(failures) == ratio.size:
             raise SimulationDiverged(step, good, history_so_far(),
                                      f"every member failed; member {int(b)} last: {reason}")
-        state = _put_member(state, b, _inert(good))
+        state = _put_member(state, b, inert(good))
     return state
 
 
-def _inert(state):
+def inert(state):
     """``state`` with every particle invalid: no forces, no motion, no trouble."""
     return state._replace(particles=state.particles._replace(
         valid=jnp.zeros_like(state.particles.valid)))
@@ -399,8 +403,8 @@ def _set_aside(state, new_state, params, config, bad, failures, hist, record_eve
             raise SimulationDiverged(f0.step, f0.last_good_state, history_so_far(),
                                      f"every member failed; member {f0.member} first: "
                                      f"{f0.reason}")
-        _blank_member(hist, b, max(0, (first - start) // record_every))
-        new_state = _put_member(new_state, b, _inert(good))
+        blank_member_records(hist, b, max(0, (first - start) // record_every))
+        new_state = _put_member(new_state, b, inert(good))
     return new_state
 
 

@@ -100,6 +100,9 @@ class SweepTable(dict):
     final_stress              (n,)   axial stress of the last record [Pa]
     tensile_strength          (n,)   Brazilian only: 2 P_peak / (pi D t) [Pa], t = 1 m
     n_records                 (n,)   valid records of each curve
+    failed_step               (n,)   first step at which the sample's run failed
+                                     the divergence guard and was set aside, -1
+                                     for none (its figures are NaN then)
     strain, stress            (n, R) axial strain [-] and stress [Pa] per record,
                                      NaN after a member's last record
 
@@ -108,7 +111,8 @@ class SweepTable(dict):
     padding included), ``n_batches``, ``steps`` (steps per member),
     ``member_steps_per_second``, ``loading_rate``, ``max_strain``,
     ``confining_stress`` [Pa] (0: none), ``record_every``, ``damping``,
-    ``n_particles``.
+    ``n_particles``, ``complete`` (False in a table saved while the sweep ran),
+    ``failures`` (one line per failed sample: ``"sample k: reason"``).
     """
 
     def __init__(self, columns=(), attrs=None):
@@ -328,7 +332,8 @@ def _check_options(batch_size, max_strain):
 
 def sweep(specimen, base_params, samples: dict, *, test=lab.UCS, batch_size=16, shard=True,
           devices=None, max_strain=3e-3, stop_stress_ratio=None, dt=None, progress=True,
-          out=None, chunk_records=None, **options) -> SweepTable:
+          out=None, chunk_records=None, save_every=60.0, resume=False,
+          **options) -> SweepTable:
     """Run one lab test for every sample and tabulate the results.
 
     specimen        :class:`jdem.specimen.Specimen` (or ``(particles, bonds)``);
@@ -352,10 +357,18 @@ def sweep(specimen, base_params, samples: dict, *, test=lab.UCS, batch_size=16, 
     dt              the time step [s]; default :func:`sweep_timestep` (the
                     stiffest sample's recommended step), used by every batch
     progress        a tqdm bar over the batches
-    out             optional HDF5 path: the table is saved there (:func:`save_sweep`)
+    out             optional HDF5 path: the table is saved there (:func:`save_sweep`),
+                    also every ``save_every`` seconds while the sweep runs and when it
+                    is interrupted or fails (``attrs["complete"]`` False then)
+    resume          continue the sweep saved at ``out`` (the same samples, test and
+                    time step): batches already there are not run again
     chunk_records   records per jitted chunk of :func:`jdem.lab.run`
     options         passed to ``test.setup`` (``loading_rate`` or ``platen_step``,
                     ``confining_stress``, ``damping``, ``record_every``, ...)
+
+    A member whose run fails (:func:`jdem.lab.run` sets it aside) keeps its row:
+    NaN figures, ``failed_step`` its first bad step, the reason in
+    ``attrs["failures"]``; the other samples are unaffected.
 
     Returns a :class:`SweepTable` (columns of shape (n,) and the curves (n, R)).
     Bad names or values raise ``jdem.validate.InputError`` naming them.
@@ -381,20 +394,36 @@ def sweep(specimen, base_params, samples: dict, *, test=lab.UCS, batch_size=16, 
                          f"{n_proc} processes; lower batch_size")
     mine = [k for k in range(n_batches) if k % n_proc == proc]
 
-    rows, curves = [], []
-    steps = 0
     n_particles = int(np.sum(np.asarray(as_arrays(specimen)[0].valid)))
+    if out is not None and n_proc > 1:
+        out = pathlib.Path(out)
+        out = out.with_name(f"{out.stem}.process{proc}of{n_proc}{out.suffix}")
+    done = _resumed(out, samples, n, dt, test.name) if resume else []
+    if resume and out is None:
+        raise InputError("resume=True needs out= (the table file to continue)")
+    have = {int(k) for d in done for k in d["idx"]}
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=len(mine), desc=f"sweep {test.name}", unit="batch", leave=False)
     plan = None
-    taken = []
+    meta = dict(test=test.name, parameters=list(samples), n_devices=n_dev, dt=dt,
+                batch_size=per, n_batches=n_batches, n_samples=n, process_index=proc,
+                process_count=n_proc, max_strain=float(max_strain),
+                confining_stress=float(options.get("confining_stress") or 0.0),
+                n_particles=n_particles)
+    last_save = time.time()
+    complete = False
     try:
         for k in mine:
             idx, real = _batch_indices(n, per, k)
-            taken.append(idx[:real])
+            if bar is not None:
+                bar.update(0)
+            if set(int(i) for i in idx[:real]) <= have:   # in the resumed table
+                if bar is not None:
+                    bar.update(1)
+                continue
             su = test.setup(specimen, _take(params, idx), dt=dt, **options)
             su = su.replace(state=place(su.state), params=place(su.params),
                             frame=place(su.frame))
@@ -402,45 +431,91 @@ def sweep(specimen, base_params, samples: dict, *, test=lab.UCS, batch_size=16, 
             res = lab.run(su, progress=False, stop_stress_ratio=stop_stress_ratio,
                           chunk_records=chunk_records)
             hist = {key: np.asarray(v)[:real] for key, v in res.history.items()}
-            rows.append(lab.peak_summary(hist))
-            curves.append((hist["axial_strain"], hist["axial_stress"]))
-            steps = max(steps, int(np.asarray(hist["step"]).max() - np.asarray(hist["step"]).min()
-                                   + plan.record_every))
+            failed = hist.get("member_failed_step", np.full(real, -1))
+            reasons = {int(idx[f.member]): f.reason for f in res.failures if f.member < real}
+            steps = int(np.asarray(hist["step"]).max() - np.asarray(hist["step"]).min()
+                        + plan.record_every)
+            done.append(dict(idx=idx[:real], summary=lab.peak_summary(hist),
+                             curve=(hist["axial_strain"], hist["axial_stress"]),
+                             failed=np.asarray(failed), reasons=reasons, steps=steps))
+            meta.update(loading_rate=float(plan.option("loading_rate")),
+                        record_every=int(plan.record_every), damping=str(plan.damping))
+            if out is not None and time.time() - last_save >= save_every:
+                save_sweep(out, _table(samples, done, meta, t_start, complete=False))
+                last_save = time.time()
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(samples=f"{min((k + 1) * per, n)}/{n}")
+        complete = True
     finally:
         if bar is not None:
             bar.close()
-    wall = time.perf_counter() - t_start
+        if out is not None and done and not complete:   # interrupted or failed: keep what ran
+            save_sweep(out, _table(samples, done, meta, t_start, complete=False))
+    table = _table(samples, done, meta, t_start, complete=True)
+    if out is not None:
+        save_sweep(out, table)
+    return table
 
+
+def _table(samples, done, meta, t_start, complete) -> SweepTable:
+    """The table of the batches run so far (``done``: one dict per batch), in
+    the order they ran; a failed sample's figures are NaN."""
+    wall = time.perf_counter() - t_start
     table = SweepTable()
-    taken = np.concatenate(taken)
+    taken = np.concatenate([d["idx"] for d in done])
     table["sample"] = taken
     for name, v in samples.items():
         table[name] = v[taken].copy()
+    rows = [d["summary"] for d in done]
+    failed = np.concatenate([d["failed"] for d in done]).astype(np.int64)
     cols = SUMMARY_COLUMNS + (("tensile_strength",) if "tensile_strength" in rows[0] else ())
     for c in cols:
-        table[c] = np.concatenate([np.asarray(r[c], np.float64) for r in rows])
+        v = np.concatenate([np.asarray(r[c], np.float64).reshape(-1) for r in rows])
+        table[c] = np.where(failed >= 0, np.nan, v)
+    curves = [d["curve"] for d in done]
     r_max = max(e.shape[1] for e, _ in curves)
-    table["n_records"] = np.concatenate([np.full(e.shape[0], e.shape[1]) for e, _ in curves])
+    table["n_records"] = np.concatenate([d.get("n_records", np.full(d["curve"][0].shape[0],
+                                                                    d["curve"][0].shape[1]))
+                                         for d in done])
     for j, key in enumerate(("strain", "stress")):
         table[key] = np.concatenate([_pad_nan(c[j], r_max) for c in curves])
-    table.attrs = dict(test=test.name, parameters=list(samples), n_devices=n_dev, dt=dt,
-                       wall_time=wall, batch_size=per, n_batches=n_batches, steps=steps,
-                       member_steps_per_second=taken.size * steps / wall,
-                       n_samples=n, process_index=proc, process_count=n_proc,
-                       loading_rate=float(plan.option("loading_rate")),
-                       max_strain=float(max_strain),
-                       confining_stress=float(options.get("confining_stress") or 0.0),
-                       record_every=int(plan.record_every), damping=str(plan.damping),
-                       n_particles=n_particles)
-    if out is not None:
-        out = pathlib.Path(out)
-        if n_proc > 1:
-            out = out.with_name(f"{out.stem}.process{proc}of{n_proc}{out.suffix}")
-        save_sweep(out, table)
+    table["failed_step"] = failed
+    steps = max(d["steps"] for d in done)
+    reasons = {k: r for d in done for k, r in d["reasons"].items()}
+    table.attrs = dict(meta, wall_time=wall, steps=steps,
+                       member_steps_per_second=taken.size * steps / wall, complete=complete,
+                       failures=[f"sample {k}: {reasons[k]}" for k in sorted(reasons)])
     return table
+
+
+def _resumed(out, samples, n, dt, test_name) -> list:
+    """The batches of an earlier, interrupted sweep saved at ``out`` (same
+    samples, test and time step), as :func:`_table` takes them; [] if there is
+    no file."""
+    if out is None or not pathlib.Path(out).exists():
+        return []
+    old = load_sweep(out)
+    if old.attrs.get("test") != test_name or old.attrs.get("n_samples") != n \
+            or not np.isclose(float(old.attrs.get("dt", np.nan)), dt, rtol=1e-12, atol=0):
+        raise InputError(f"resume: {out} holds another sweep (test {old.attrs.get('test')!r}, "
+                         f"{old.attrs.get('n_samples')} samples, dt {old.attrs.get('dt')}); "
+                         f"this one is {test_name!r}, {n} samples, dt {dt}")
+    for name, v in samples.items():
+        if name not in old or not np.array_equal(old[name], v[old["sample"]]):
+            raise InputError(f"resume: {out} was run with other values of {name!r}")
+    idx = np.asarray(old["sample"])
+    summary = {c: np.asarray(old[c]) for c in SUMMARY_COLUMNS + ("tensile_strength",) if c in old}
+    reasons = {}
+    for line in old.attrs.get("failures", []):
+        head, _, why = line.partition(": ")
+        reasons[int(head.split()[1])] = why
+    m = np.asarray(old["n_records"])
+    r = int(m.max())
+    return [dict(idx=idx, summary=summary,
+                 curve=(np.asarray(old["strain"])[:, :r], np.asarray(old["stress"])[:, :r]),
+                 failed=np.asarray(old.get("failed_step", np.full(idx.size, -1))),
+                 reasons=reasons, steps=int(old.attrs.get("steps", 0)), n_records=m)]
 
 
 def merge_sweeps(parts, out=None) -> SweepTable:
@@ -467,7 +542,9 @@ def merge_sweeps(parts, out=None) -> SweepTable:
     attrs = dict(tables[0].attrs)
     attrs.update(wall_time=max(float(t.attrs["wall_time"]) for t in tables),
                  n_devices=sum(int(t.attrs["n_devices"]) for t in tables),
-                 process_index=0, process_count=len(tables))
+                 process_index=0, process_count=len(tables),
+                 complete=all(bool(t.attrs.get("complete", True)) for t in tables),
+                 failures=[line for t in tables for line in t.attrs.get("failures", [])])
     attrs["member_steps_per_second"] = n * float(attrs["steps"]) / attrs["wall_time"]
     merged.attrs = attrs
     if out is not None:

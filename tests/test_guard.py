@@ -100,3 +100,31 @@ def test_batched_flag_that_does_not_match_the_state_is_refused():
     with pytest.raises(InputError, match="batched = False"):
         jdem.run(broadcast_batch(state, 2), broadcast_batch(params, 2), cfg, 100,
                  record_every=100, progress=False)
+
+
+def test_a_lab_batch_with_a_diverging_member_finishes_the_others():
+    """A UCS batch of two identical members, the second with 20 x the time step:
+    it is set aside at its first bad step; the first member's curve is bit for
+    bit the one it has beside a healthy twin, and its summary is unchanged."""
+    from jdem import lab
+    from jdem.materials import rock_params
+    from jdem.specimen import generate
+
+    spec = generate("rectangle", (0.004, 0.008), 0.2e-3, 0.35e-3, seed=2)
+    params = rock_params(2, kappa=[3e-3, 3e-3])
+    setup = lab.UCS.setup(spec, params, platen_step=3e-9, max_strain=4e-4,
+                          damping=lab.local(0.8), record_every=50)
+    twin = lab.run(setup, progress=False, warn_dynamic=False)
+    dt = setup.params.dt
+    setup = setup.replace(params=setup.params._replace(dt=dt.at[1].set(20 * dt[1])))
+    with pytest.warns(RuntimeWarning, match="member 1 set aside"):
+        res = lab.run(setup, progress=False, warn_dynamic=False, check_dt=False)
+    (failure,) = res.failures
+    assert failure.member == 1 and failure.reason
+    assert list(res.history["member_failed_step"]) == [-1, failure.step]
+    for key in ("axial_stress", "axial_strain", "fracture_degree"):
+        np.testing.assert_array_equal(res.history[key][0], twin.history[key][0])
+        assert np.all(np.isnan(res.history[key][1][failure.step // 50 + 1:]))
+    s_twin, s_res = lab.peak_summary(twin.history), lab.peak_summary(res.history)
+    assert s_res["peak_stress"][0] == s_twin["peak_stress"][0]
+    assert np.all(np.isfinite(np.asarray(res.state.particles.pos[1])))

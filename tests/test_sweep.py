@@ -400,3 +400,54 @@ def test_sweep_over_two_processes_matches_one(specimen, tmp_path, one_per_batch)
         assert _max_rel(merged[key], one_per_batch[key]) <= 1e-9, key
     with pytest.raises(InputError, match="missing"):
         sw.merge_sweeps(parts[:1])
+
+
+# ----------------------------------------------------------------------------- reliability
+SHORT = dict(RUN, max_strain=6e-4)
+
+
+def test_an_interrupted_sweep_is_saved_and_resumes_to_the_uninterrupted_table(
+        specimen, base, samples, tmp_path, monkeypatch):
+    """Two batches of two; Ctrl-C during the second leaves the first in the file
+    (``complete`` False); resuming runs only the second and gives the table of
+    an uninterrupted sweep, bit for bit."""
+    kw = dict(shard=False, damping=lab.local(ALPHA), batch_size=2, **SHORT)
+    whole = sw.sweep(specimen, base, samples, **kw)
+    real_run, calls = lab.run, []
+
+    def interrupted(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real_run(*a, **k)
+
+    out = tmp_path / "sweep.h5"
+    monkeypatch.setattr(lab, "run", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        sw.sweep(specimen, base, samples, out=out, **kw)
+    part = sw.load_sweep(out)
+    assert part.attrs["complete"] is False and list(part["sample"]) == [0, 1]
+    calls.clear()
+    monkeypatch.setattr(lab, "run", lambda *a, **k: (calls.append(1), real_run(*a, **k))[1])
+    done = sw.sweep(specimen, base, samples, out=out, resume=True, **kw)
+    assert len(calls) == 1                       # only the missing batch ran
+    assert done.attrs["complete"] is True
+    for key in whole:
+        np.testing.assert_array_equal(done[key], whole[key], err_msg=key)
+    with pytest.raises(InputError, match="other values of 'strength'"):
+        sw.sweep(specimen, base, dict(samples, strength=samples["strength"] * 2), out=out,
+                 resume=True, **kw)
+
+
+def test_a_sample_whose_step_is_unstable_is_set_aside_and_the_others_finish(
+        specimen, base, table):
+    """With the time step of the 2 x 2 sweep, a sample 100 x stiffer is above its
+    critical step: its row is NaN with the reason, the other sample runs."""
+    e0 = float(np.asarray(base.youngs)[0])
+    with pytest.warns(RuntimeWarning, match="member 1 set aside"):
+        res = sw.sweep(specimen, base, {"E": np.array([e0, 100 * e0])}, shard=False,
+                       dt=table.attrs["dt"], damping=lab.local(ALPHA), **SHORT)
+    assert list(res["failed_step"] >= 0) == [False, True]
+    assert np.isfinite(res["peak_stress"][0]) and np.isnan(res["peak_stress"][1])
+    (line,) = res.attrs["failures"]
+    assert line.startswith("sample 1: refused at the start: params.dt")

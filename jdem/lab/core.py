@@ -43,7 +43,8 @@ from jdem import neighbors
 from jdem.lab import pattern, summary
 from jdem.lab.checkpoint import load_checkpoint, save_checkpoint
 from jdem.batch import broadcast_batch, is_batched, member
-from jdem.simulate import SimulationDiverged, rollout
+from jdem.simulate import (MemberFailure, SimulationDiverged, advance, blank_member_records,
+                           check_current_step, diagnose, inert, rollout)
 from jdem.state import Config, Params, State
 from jdem.timestep import check_timestep
 from jdem.validate import InputError, check_params
@@ -144,11 +145,14 @@ class Setup:
 class LabResult(NamedTuple):
     """history: dict (records on axis 0; batched: members on axis 0, records on
     axis 1); state: the final state; setup: the set-up in force at the end (its
-    neighbour list may have grown)."""
+    neighbour list may have grown); failures: a :class:`jdem.simulate.MemberFailure`
+    per member of a batched run that failed and was set aside (its records from
+    the failure on are NaN, ``history["member_failed_step"]`` its first bad step)."""
 
     history: dict
     state: State
     setup: Setup
+    failures: tuple = ()
 
 
 # ----------------------------------------------------------------------------- the record block
@@ -312,11 +316,15 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
     params = _strong(_params_for(params, setup.plan, setup.n_members))
     check_params(params)
     plan = setup.plan
+    failures = []
     if check_dt:
-        _check_timestep(setup, params)
+        _check_timestep(setup, params, failures)
     per = chunk_records or max(1, 2000 // plan.record_every)
     nb = setup.n_members
     state, frame = _strong(setup.state), _strong(setup.frame)
+    for f in failures:
+        state = jax.tree_util.tree_map(lambda a, v: a.at[f.member].set(v), state,
+                                       inert(f.last_good_state))
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -330,6 +338,7 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
     try:
         while k0 < plan.n_records:
             n = min(per, plan.n_records - k0)
+            earlier = [f.member for f in failures]
             fn = _compiled_records(plan, n)
             new_state, raw = fn(state, params, frame, jnp.asarray(k0, jnp.int32))
             if bool(neighbors.overflowed(new_state.contacts, plan.config)):
@@ -341,12 +350,25 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
                 plan = plan.replace(config=config)
                 setup = setup.replace(plan=plan)
                 continue
-            bad = np.asarray(new_state.first_bad_step)
-            if np.any(bad >= 0):
-                status = "diverged"
-                hist = _host_history(parts, setup.replace(state=state)) if parts else {}
-                raise SimulationDiverged(int(np.min(bad[bad >= 0])), state, hist)
             raw = {key: np.asarray(v) for key, v in raw.items()}
+            bad = np.asarray(new_state.first_bad_step).reshape(-1)
+            if np.any(bad >= 0):
+                try:
+                    new_state = _set_aside(setup.replace(state=state), params, k0, bad,
+                                           failures, raw, parts, new_state)
+                except SimulationDiverged:
+                    status = "diverged"
+                    raise
+            if check_dt:
+                try:
+                    new_state = check_current_step(
+                        new_state, params, plan.config, failures, plan.batched,
+                        lambda: _host_history(parts, setup) if parts else {})
+                except SimulationDiverged:
+                    status = "diverged"
+                    raise
+            for b in earlier:       # members set aside before this chunk
+                blank_member_records(raw, b, 0)
             start = state
             parts.append(raw)
             state = new_state
@@ -361,18 +383,20 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
                         bar.set_postfix(stress=f"{float(np.max(stress[:, -1])) / 1e6:.3g} MPa")
                     n_new = min(n, stress.shape[1])
                     for b in range(nb):
-                        if not stress.shape[1]:
-                            break
-                        j = int(np.argmax(stress[b]))
+                        if not stress.shape[1] or not np.any(np.isfinite(stress[b])):
+                            continue
+                        j = int(np.nanargmax(stress[b]))
                         if stress[b, j] > peak_val[b]:
                             peak_val[b] = stress[b, j]
                             if j >= stress.shape[1] - n_new:   # in this chunk: its record
                                 peak_at[b] = (start, k0 - n, n - (stress.shape[1] - j), plan)
                     if stop_stress_ratio is not None and stress.shape[1] > n_new:
-                        recent = stress[:, -n_new:].mean(axis=1)
-                        idx = np.argmax(stress, axis=1)
-                        if np.all((recent < stop_stress_ratio * peak_val)
-                                  & (idx < stress.shape[1] - n_new)):
+                        gone = np.isin(np.arange(nb), [f.member for f in failures])
+                        with np.errstate(invalid="ignore"):
+                            recent = np.where(gone, -np.inf, stress[:, -n_new:].mean(axis=1))
+                        idx = np.argmax(np.where(np.isfinite(stress), stress, -np.inf), axis=1)
+                        if np.all(gone | ((recent < stop_stress_ratio * peak_val)
+                                          & (idx < stress.shape[1] - n_new))):
                             break
             if checkpoint is not None and time.time() - last_save >= checkpoint_every:
                 save_checkpoint(checkpoint, setup.replace(state=state), params, parts, k0)
@@ -384,12 +408,29 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
         if checkpoint is not None and parts and status != "diverged":
             save_checkpoint(checkpoint, setup.replace(state=state), params, parts, k0,
                             status=status)
+    for f in failures:     # a set-aside member ends in its last good state
+        state = jax.tree_util.tree_map(lambda a, v: a.at[f.member].set(v), state,
+                                       f.last_good_state)
     setup = setup.replace(state=state)
     history = _host_history(parts, setup)
     history.update(pattern.bond_record(state, "end_"))
+    if plan.batched:
+        failed_step = np.full(nb, -1, np.int64)
+        for f in failures:
+            failed_step[f.member] = f.step
+        history["member_failed_step"] = failed_step
+    if failures:
+        import warnings
+
+        warnings.warn("; ".join(f"{plan.test.name} member {f.member} set aside at step "
+                                f"{f.step}: {f.reason}" for f in failures),
+                      RuntimeWarning, stacklevel=2)
     if keep_peak_state:
         recs = []
         for b in range(nb):
+            if b in {f.member for f in failures}:
+                raise InputError(f"keep_peak_state: member {b} failed during the run "
+                                 f"(result.failures); its peak state is not kept")
             if peak_at[b] is None:
                 raise InputError("keep_peak_state: the peak lies in the part of the run "
                                  "before the resumed checkpoint; run it without resume")
@@ -403,7 +444,53 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
                         for key in recs[0]})
     if warn_dynamic:
         summary.warn_if_dynamic(history, plan.test.name)
-    return LabResult(history, state, setup)
+    return LabResult(history, state, setup, tuple(failures))
+
+
+def _good_state(setup: Setup, params, k0: int, first: int):
+    """The state of the run started at record ``k0`` from ``setup.state`` just
+    before step ``first``: whole records, then the steps of the record that
+    holds ``first`` under that record's loading."""
+    plan, state = setup.plan, setup.state
+    start = int(np.min(np.asarray(state.step)))
+    j, m = divmod(first - start, plan.record_every)
+    if j:
+        state, _ = _compiled_records(plan, j)(state, params, setup.frame,
+                                              jnp.asarray(k0, jnp.int32))
+    state = plan.test.load(state, jnp.asarray(k0 + j, jnp.int32), setup.frame, plan)
+    return advance(state, params, plan.config, m, batched=plan.batched,
+                   boundary=(plan.test.boundary, setup.frame))
+
+
+def _set_aside(setup: Setup, params, k0, bad, failures, raw, parts, new_state):
+    """The members of a chunk started at record ``k0`` that failed the guard
+    (``bad``: first bad step per member, -1 for none).  One system, or a batch
+    whose every member has failed: raise :class:`SimulationDiverged` with the
+    state before the bad step and the reason.  Otherwise blank each newly failed
+    member's records from the bad one on, note a ``MemberFailure`` and return
+    the chunk's end state ``new_state`` with that member inert."""
+    plan = setup.plan
+    start = int(np.min(np.asarray(setup.state.step)))
+    boundary = (plan.test.boundary, setup.frame)
+    for b in np.flatnonzero(bad >= 0):
+        first = int(bad[b])
+        good = _good_state(setup, params, k0, first)
+        if not plan.batched:
+            raise SimulationDiverged(first, good, _host_history(parts, setup) if parts else {},
+                                     diagnose(good, params, plan.config, boundary))
+        good = member(good, b)
+        reason = diagnose(good, member(params, b), plan.config,
+                          (plan.test.boundary, member(setup.frame, b)))
+        failures.append(MemberFailure(int(b), first, reason, good))
+        if len(failures) == setup.n_members:
+            f0 = min(failures, key=lambda f: f.step)
+            raise SimulationDiverged(f0.step, f0.last_good_state,
+                                     _host_history(parts, setup) if parts else {},
+                                     f"every member failed; member {f0.member} first: "
+                                     f"{f0.reason}")
+        blank_member_records(raw, b, (first - start) // plan.record_every)
+        new_state = jax.tree_util.tree_map(lambda a, v: a.at[b].set(v), new_state, inert(good))
+    return new_state
 
 
 def _axial_stress(parts, setup):
@@ -412,12 +499,25 @@ def _axial_stress(parts, setup):
     return None if s is None else np.asarray(s)
 
 
-def _check_timestep(setup: Setup, params):
-    if setup.plan.batched:
-        for b in range(setup.n_members):
-            check_timestep(member(setup.state, b), member(params, b), setup.plan.config)
-    else:
+def _check_timestep(setup: Setup, params, failures):
+    """Refuse a time step above the critical one: raise ``InputError`` for one
+    system or when every member of a batch has it; otherwise note the members
+    that have it in ``failures`` (they are set aside before the run starts)."""
+    if not setup.plan.batched:
         check_timestep(setup.state, params, setup.plan.config)
+        return
+    refused = []
+    for b in range(setup.n_members):
+        try:
+            check_timestep(member(setup.state, b), member(params, b), setup.plan.config)
+        except InputError as e:
+            refused.append((b, str(e)))
+    if len(refused) == setup.n_members:
+        raise InputError(f"every member: {refused[0][1]}")
+    step = int(np.min(np.asarray(setup.state.step)))
+    for b, why in refused:
+        failures.append(MemberFailure(b, step, f"refused at the start: {why}",
+                                      member(setup.state, b)))
 
 
 def n_records_for(load_steps, record_every, ramp_records, preload_records=0):

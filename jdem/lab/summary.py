@@ -48,7 +48,9 @@ def kinetic_ratio(history) -> float:
     branch, from 10 % of the peak stress up to the peak."""
     stress = np.asarray(history["axial_stress"], np.float64)
     ratio = np.asarray(history["kinetic_ratio"], np.float64)
-    k = int(np.argmax(stress))
+    if not np.any(np.isfinite(stress)):
+        return float("nan")
+    k = int(np.nanargmax(stress))
     sel = stress[:k + 1] >= 0.1 * stress[k]
     return float(np.max(ratio[:k + 1][sel])) if sel.any() else float("nan")
 
@@ -72,6 +74,16 @@ def peak_summary(history: dict, *, window=MODULUS_WINDOW) -> dict:
         rows = [peak_summary(member(history, b), window=window) for b in range(stress.shape[0])]
         return {k: np.asarray([r[k] for r in rows]) for k in rows[0]}
     strain = np.asarray(history["axial_strain"])
+    finite = np.isfinite(stress)
+    if not finite.all():
+        # a member set aside by the run (its records NaN from its failure on):
+        # the figures of the records before it
+        n_ok = int(np.argmin(finite))     # the first NaN record
+        if n_ok == 0:
+            return _nan_summary(history)
+        history = {key: (np.asarray(v)[:n_ok] if np.ndim(v) and np.shape(v)[0] == stress.size
+                         else v) for key, v in history.items()}
+        stress, strain = stress[:n_ok], strain[:n_ok]
     k = int(np.argmax(stress))
     peak = float(stress[k])
     modulus, _ = fit_modulus(strain, stress, window=window)
@@ -93,12 +105,21 @@ def peak_summary(history: dict, *, window=MODULUS_WINDOW) -> dict:
     return out
 
 
+def _nan_summary(history):
+    out = dict(peak_stress=np.nan, critical_strain=np.nan, youngs_modulus=np.nan,
+               poisson_ratio=np.nan, fracture_degree_at_peak=np.nan, fracture_degree_end=np.nan,
+               final_stress=np.nan, peak_index=-1, peak_step=-1, kinetic_ratio=np.nan)
+    if "tensile_strength_indirect" in history:
+        out["tensile_strength"] = np.nan
+    return out
+
+
 def warn_if_dynamic(history: dict, name: str = "lab test"):
     """Warn when a history's in-run indicator exceeds ``KINETIC_RATIO_WARNING``."""
     stress = np.asarray(history["axial_stress"])
     members = [member(history, b) for b in range(stress.shape[0])] if stress.ndim == 2 \
         else [history]
-    worst = max(kinetic_ratio(h) for h in members)
+    worst = np.nanmax([kinetic_ratio(h) for h in members] + [-np.inf])
     if np.isfinite(worst) and worst > KINETIC_RATIO_WARNING:
         warnings.warn(f"{name}: kinetic / strain energy reached {worst:.3g} before the peak "
                       f"(> {KINETIC_RATIO_WARNING:g}): the curve is probably not quasi-static; "
