@@ -263,7 +263,7 @@ def build(contacts: Contacts, particles: Particles, config: Config, bonds=None) 
     return Contacts(
         i=new_i, j=new_j, valid=valid, shear=shear,
         pos_at_build=particles.pos, radius_at_build=particles.radius,
-        n_pairs=jnp.maximum(contacts.n_pairs, count),
+        n_pairs=jnp.maximum(contacts.n_pairs, count.astype(contacts.n_pairs.dtype)),
         max_in_cell=jnp.maximum(contacts.max_in_cell, max_in_cell.astype(jnp.int32)),
         n_builds=contacts.n_builds + 1)
 

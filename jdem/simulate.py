@@ -6,6 +6,8 @@
   each record ``record_every`` steps, each record block wrapped in
   ``jax.checkpoint`` so reverse-mode memory grows with the number of records,
   not steps.  It works under ``jax.grad`` and ``jax.vmap``.
+  Its neighbour list cannot grow: the history carries ``overflowed`` and the
+  records after an overflow are NaN (:func:`raise_if_overflowed`).
 * :func:`run` is the host loop around it, one jitted chunk of records at a time.
   Between chunks it
 
@@ -158,24 +160,52 @@ def rollout(state: State, params: Params, config: Config, n_records: int, record
     ``record_every`` steps; the history stacks its outputs along axis 0.  With
     ``batched=True`` every leaf of ``state`` and ``params`` has a leading batch
     axis and each history entry has shape ``(n_records, batch, ...)``.
-    The neighbour list must be large enough (check ``neighbors.overflowed`` on
-    the result); :func:`run` does that for you.  ``boundary = (fn, data)``
+    The neighbour list has a fixed capacity and cannot grow inside a pure
+    function.  The history therefore always carries ``overflowed`` (per record;
+    per member when batched), and every floating-point entry of a record taken
+    after an overflow is NaN, so a truncated list cannot pass unnoticed;
+    :func:`run` grows the list and runs the chunk again, and
+    :func:`raise_if_overflowed` turns the flag into an error.  ``boundary = (fn, data)``
     adds boundary conditions to every step (see :func:`jdem.integrate.physics_step`).
     """
     observe = observe or basic_observables
     step_fn = integrate.step_batched if batched else integrate.step
     obs = jax.vmap(observe, in_axes=(0, 0, None)) if batched else observe
+    over = jax.vmap(neighbors.overflowed, in_axes=(0, None)) if batched else neighbors.overflowed
 
     def one_step(s, _):
         return step_fn(s, params, config, boundary), None
 
     def block(s, _):
         s, _ = jax.lax.scan(one_step, s, None, length=record_every)
-        return s, obs(s, params, config)
+        rec = obs(s, params, config)
+        lost = over(s.contacts, config)
+        # a record taken after the list overflowed misses contacts: poison it
+        rec = {k: jnp.where(lost.reshape(lost.shape + (1,) * (v.ndim - lost.ndim)), jnp.nan, v)
+               if jnp.issubdtype(v.dtype, jnp.floating) else v for k, v in rec.items()}
+        rec["overflowed"] = lost
+        return s, rec
 
     if checkpoint:
         block = jax.checkpoint(block)
     return jax.lax.scan(block, state, None, length=n_records)
+
+
+class NeighbourListOverflow(RuntimeError):
+    """The fixed-capacity neighbour list overflowed inside a pure rollout."""
+
+
+def raise_if_overflowed(history: dict):
+    """Raise :class:`NeighbourListOverflow` if a :func:`rollout` history says the
+    neighbour list overflowed (grow it with :func:`jdem.neighbors.reallocate`,
+    or use :func:`run`)."""
+    flag = np.asarray(history["overflowed"])
+    if np.any(flag):
+        first = int(np.argmax(flag.reshape(flag.shape[0], -1).any(axis=1)))
+        raise NeighbourListOverflow(
+            f"the neighbour list overflowed by record {first}: contacts were dropped and "
+            f"the records from there on are NaN; grow it (jdem.neighbors.reallocate) or use "
+            f"jdem.run, which does")
 
 
 def _with(boundary_fn, data):

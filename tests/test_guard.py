@@ -128,3 +128,24 @@ def test_a_lab_batch_with_a_diverging_member_finishes_the_others():
     s_twin, s_res = lab.peak_summary(twin.history), lab.peak_summary(res.history)
     assert s_res["peak_stress"][0] == s_twin["peak_stress"][0]
     assert np.all(np.isfinite(np.asarray(res.state.particles.pos[1])))
+
+
+def test_a_pure_rollout_that_overflows_its_list_says_so_and_its_records_are_nan():
+    from jdem import neighbors
+
+    state, params, cfg, crit = _box()
+    params = params._replace(dt=jnp.asarray(0.1 * crit))
+    _, hist = jdem.rollout(state, params, cfg, 3, 10)
+    assert not np.any(np.asarray(hist["overflowed"]))
+    jdem.simulate.raise_if_overflowed(hist)                   # no error
+    small = state._replace(contacts=neighbors.empty(state.particles, 4))
+    _, hist = jdem.rollout(small, params, cfg, 3, 10)
+    assert np.all(np.asarray(hist["overflowed"]))
+    assert np.all(np.isnan(np.asarray(hist["kinetic_energy"])))
+    assert np.asarray(hist["step"]).tolist() == [10, 20, 30]   # integers kept
+    with pytest.raises(jdem.simulate.NeighbourListOverflow, match="record 0"):
+        jdem.simulate.raise_if_overflowed(hist)
+    # the host loop grows the list instead: same records as with room
+    res = jdem.run(small, params, cfg, 30, record_every=10, progress=False)
+    _, roomy = jdem.rollout(state, params, cfg, 3, 10)
+    np.testing.assert_array_equal(res.history["kinetic_energy"], roomy["kinetic_energy"])
