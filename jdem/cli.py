@@ -31,6 +31,7 @@ from __future__ import annotations
 # float64 first (platen steps below a nanometre need it), which must happen
 # before any array is made.
 import argparse
+import os
 import pathlib
 import sys
 import time
@@ -44,8 +45,7 @@ def demo(out="results/demo", small=False):
     from jdem.lab import single_bond
     from jdem.materials import seed_params
 
-    out = pathlib.Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = _out_dir(out)
     t0 = time.time()
     print("jdem demo: two bonded spheres, R = 0.5 m, E = 10 GPa, T0 = c0 = 3 MPa (002 §1.3)")
     histories = {}
@@ -204,8 +204,35 @@ def ucs_settings(config_path=None, small=False, defaults=None) -> dict:
     return cfg
 
 
+def _out_dir(out) -> pathlib.Path:
+    """``--out`` as a folder that exists and can be written, or ``InputError``."""
+    from jdem.validate import InputError
+
+    out = pathlib.Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out '{out}' is a file, not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"--out '{out}' cannot be created: {e.strerror or e}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise InputError(f"--out '{out}' is not writable")
+    return out
+
+
+def _resume_file(path: pathlib.Path, resume: bool):
+    """The checkpoint to continue from with ``--resume`` (it must exist)."""
+    from jdem.validate import InputError
+
+    if not resume:
+        return None
+    if not path.exists():
+        raise InputError(f"--resume: no checkpoint '{path}' (run without --resume first)")
+    return path
+
+
 def ucs(config=None, out="results/ucs", small=False, progress=True, animate=False,
-        paraview=False):
+        paraview=False, resume=False):
     """``jdem ucs``: generate the specimen, compress it, write ``ucs.png`` and
     ``ucs.h5`` to ``out``; with ``animate`` also ``failure.gif`` (the first
     softening strain's failure developing, :func:`jdem.plot.animate_failure`),
@@ -221,8 +248,7 @@ def ucs(config=None, out="results/ucs", small=False, progress=True, animate=Fals
 
     cfg = ucs_settings(config, small)
     sp, mat, ld = cfg["specimen"], cfg["material"], cfg["loading"]
-    out = pathlib.Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = _out_dir(out)
     t0 = time.time()
     print(f"jdem ucs: {sp['width'] * 100:g} cm x {sp['height'] * 100:g} cm specimen, "
           f"r in [{sp['r_min'] * 1e3:g}, {sp['r_max'] * 1e3:g}] mm")
@@ -244,8 +270,9 @@ def ucs(config=None, out="results/ucs", small=False, progress=True, animate=Fals
           f"{setup.plan.option('loading_rate'):.3g} (platen / wave speed), damping "
           f"{setup.plan.damping}")
     t1 = time.time()
+    checkpoint = out / "ucs_checkpoint.h5"
     res = lab.run(setup, progress=progress, stop_stress_ratio=ld["stop_stress_ratio"] or None,
-                  checkpoint=out / "ucs_checkpoint.h5")
+                  checkpoint=checkpoint, resume=_resume_file(checkpoint, resume))
     hist, state, config_ = res.history, res.state, res.setup.plan.config
     run_time = time.time() - t1
     summary = lab.peak_summary(hist)
@@ -350,7 +377,8 @@ def _start_value(name, mat):
             "gamma_lim": mat["kappa"], "strength": mat["T0"], "kappa": mat["kappa"]}[name]
 
 
-def calibrate_cli(curve, config=None, out="results/calibrate", small=False, progress=True):
+def calibrate_cli(curve, config=None, out="results/calibrate", small=False, progress=True,
+                  resume=False):
     """``jdem calibrate CURVE.csv``: fit the ``[fit] parameters`` of a bonded
     specimen in the UCS test to a laboratory curve (strain, stress [Pa], and a
     third column, the lateral strain, when the file has one); writes
@@ -364,8 +392,7 @@ def calibrate_cli(curve, config=None, out="results/calibrate", small=False, prog
     cfg = calibrate_settings(config, small)
     sp, mat, ld, fit = cfg["specimen"], cfg["material"], cfg["loading"], cfg["fit"]
     target = calibrate.load_target(curve, lateral_column="auto")
-    out = pathlib.Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = _out_dir(out)
     t0 = time.time()
     print(f"jdem calibrate: target {curve}: {len(target.strain)} points, peak "
           f"{target.peak_stress / 1e6:.3g} MPa at strain {target.peak_strain:.3g}, E "
@@ -392,9 +419,11 @@ def calibrate_cli(curve, config=None, out="results/calibrate", small=False, prog
           f"loading rate {setup.plan.option('loading_rate'):.3g}"
           + ("" if fit["require_quasi_static"] else
              " -- quasi-static check OFF: the values describe this loading rate"))
+    result = out / "calibration.h5"
     res = calibrate.calibrate(setup, target, start, bounds=bounds or None, method=fit["method"],
-                              steps=fit["steps"], progress=progress, out=out / "calibration.h5",
-                              require_quasi_static=fit["require_quasi_static"])
+                              steps=fit["steps"], progress=progress, out=result,
+                              require_quasi_static=fit["require_quasi_static"],
+                              resume=_resume_file(result.with_suffix(".checkpoint.h5"), resume))
     plot.plot_calibration(res, out / "calibration.png")
     print(calibrate.report(res))
     print(f"  -> {out / 'calibration.png'}, {out / 'calibration.h5'}  "
@@ -428,17 +457,21 @@ def main(argv=None):
     c.add_argument("--out", default="results/calibrate")
     c.add_argument("--small", action="store_true",
                    help="~100-disc specimen, fast loading, no quasi-static check (smoke test)")
+    for p in (u, c):
+        p.add_argument("--resume", action="store_true",
+                       help="continue an interrupted run from the checkpoint in --out "
+                            "(ucs_checkpoint.h5 / calibration.checkpoint.h5), bit for bit")
     args = ap.parse_args(argv)
-    if args.cmd == "demo":
-        demo(args.out, args.small)
-        return 0
     from jdem.validate import InputError
 
     try:
-        if args.cmd == "ucs":
-            ucs(args.config, args.out, args.small, animate=args.animate, paraview=args.paraview)
+        if args.cmd == "demo":
+            demo(args.out, args.small)
+        elif args.cmd == "ucs":
+            ucs(args.config, args.out, args.small, animate=args.animate, paraview=args.paraview,
+                resume=args.resume)
         else:
-            calibrate_cli(args.curve, args.config, args.out, args.small)
+            calibrate_cli(args.curve, args.config, args.out, args.small, resume=args.resume)
     except InputError as e:
         print(f"jdem {args.cmd}: error: {e}", file=sys.stderr)
         return 2

@@ -253,13 +253,30 @@ def _read_attrs(attrs: h5py.AttributeManager, skip=("_class",), tuples=True) -> 
     return out
 
 
-def _read_array(ds: h5py.Dataset):
-    return jnp.asarray(read_dataset(ds))
+class PrecisionError(InputError):
+    """A file holds float64 arrays but this process runs JAX in float32, so
+    loading would round them (and a restart would not continue bit for bit)."""
 
 
-def _read_history(group: h5py.Group, numpy=False) -> dict:
-    read = read_dataset if numpy else _read_array
-    return {k: _read_history(v, numpy) if isinstance(v, h5py.Group) else read(v)
+def _x64() -> bool:
+    import jax
+
+    return bool(jax.config.read("jax_enable_x64"))
+
+
+def _read_array(ds: h5py.Dataset, allow_downcast=False):
+    a = read_dataset(ds)
+    if a.dtype == np.float64 and not allow_downcast and not _x64():
+        raise PrecisionError(
+            f"{ds.name} in {ds.file.filename} is float64 but JAX runs in float32 here "
+            f"(jax_enable_x64 is off): loading would round it.  Enable float64 first "
+            f"(jax.config.update('jax_enable_x64', True)), or pass allow_downcast=True")
+    return jnp.asarray(a)
+
+
+def _read_history(group: h5py.Group, numpy=False, allow_downcast=False) -> dict:
+    read = read_dataset if numpy else lambda d: _read_array(d, allow_downcast)
+    return {k: _read_history(v, numpy, allow_downcast) if isinstance(v, h5py.Group) else read(v)
             for k, v in group.items()}
 
 
@@ -285,7 +302,7 @@ def _class_of(group: h5py.Group, default: str, where: str, path) -> type:
     return cls
 
 
-def _read_tree(group: h5py.Group, cls: type, where: str, path):
+def _read_tree(group: h5py.Group, cls: type, where: str, path, allow_downcast=False):
     values = []
     for name in cls._fields:
         sub = f"{where}/{name}"
@@ -294,9 +311,10 @@ def _read_tree(group: h5py.Group, cls: type, where: str, path):
         node = group[name]
         if isinstance(node, h5py.Group):
             hint = str(cls.__annotations__.get(name, ""))  # e.g. "Particles"
-            values.append(_read_tree(node, _class_of(node, hint, sub, path), sub, path))
+            values.append(_read_tree(node, _class_of(node, hint, sub, path), sub, path,
+                                     allow_downcast))
         else:
-            values.append(_read_array(node))
+            values.append(_read_array(node, allow_downcast))
     return cls(*values)
 
 
@@ -312,7 +330,8 @@ def open_hdf5(path):
         raise CorruptFileError(f"cannot open {path} as HDF5: {e}") from None
 
 
-def _load(path, parts=("state", "params", "config", "history", "attrs"), numpy=False) -> RunData:
+def _load(path, parts=("state", "params", "config", "history", "attrs"), numpy=False,
+          allow_downcast=False) -> RunData:
     path = pathlib.Path(path)
     f = open_hdf5(path)
     out = dict.fromkeys(RunData._fields)
@@ -324,50 +343,61 @@ def _load(path, parts=("state", "params", "config", "history", "attrs"), numpy=F
                     f"{path} has format_version {version}, newer than supported {FORMAT_VERSION}")
             for name, default in (("state", "State"), ("params", "Params")):
                 if name in parts and name in f:
-                    out[name] = _read_tree(f[name], _class_of(f[name], default, name, path), name, path)
+                    out[name] = _read_tree(f[name], _class_of(f[name], default, name, path),
+                                           name, path, allow_downcast)
             if "config" in parts and "config" in f:
                 g = f["config"]
                 cls = _class_of(g, "Config", "config", path)
                 fields = _read_attrs(g.attrs)
+                if cls.__name__ == "Config" and "dim" not in fields:
+                    raise CorruptFileError(f"config in {path} has no 'dim' (2 or 3)")
                 try:
                     out["config"] = cls(**fields)
                 except (TypeError, ValueError) as e:
                     raise CorruptFileError(f"config in {path} is invalid: {e}") from None
             if "history" in parts and "history" in f:
-                out["history"] = _read_history(f["history"], numpy)
+                out["history"] = _read_history(f["history"], numpy, allow_downcast)
             if "attrs" in parts:
                 user = _read_attrs(f.attrs, skip=_RESERVED_ROOT_ATTRS, tuples=False)
                 if "attrs" in f:
                     user.update(_read_attr_tree(f["attrs"]))
                 out["attrs"] = user or None
-    except CorruptFileError:
+    except (CorruptFileError, PrecisionError):
         raise
     except (OSError, KeyError, RuntimeError, ValueError, TypeError) as e:
         raise CorruptFileError(f"cannot read {path}: {type(e).__name__}: {e}") from None
+    st, cf = out["state"], out["config"]
+    if st is not None and cf is not None and hasattr(st, "particles") \
+            and st.particles.pos.shape[-1] != cf.dim:
+        raise CorruptFileError(f"{path}: the state's positions have dimension "
+                               f"{st.particles.pos.shape[-1]} but config.dim = {cf.dim}")
     return RunData(**out)
 
 
-def load_run(path, *, numpy=False) -> RunData:
+def load_run(path, *, numpy=False, allow_downcast=False) -> RunData:
     """Read everything :func:`save_run` wrote.  Arrays come back as ``jax.numpy``
     arrays with their stored dtype (float64 stays float64 when ``jax_enable_x64``
     is on; JAX narrows it to float32 otherwise); with ``numpy`` the history comes
     back as NumPy arrays, exactly as stored.  Attribute values stored as JSON
     (lists, nested lists) come back as lists; a Config's as tuples.
 
-    Raises ``FileNotFoundError`` if ``path`` does not exist and
-    :class:`CorruptFileError` if it is not HDF5, is truncated, or lacks a field.
+    Raises ``FileNotFoundError`` if ``path`` does not exist,
+    :class:`CorruptFileError` if it is not HDF5, is truncated, lacks a field
+    (a Config without ``dim`` included) or its state and config disagree on the
+    dimension, and :class:`PrecisionError` if it holds float64 arrays while JAX
+    runs in float32 (``allow_downcast=True`` rounds them instead).
     """
-    return _load(path, numpy=numpy)
+    return _load(path, numpy=numpy, allow_downcast=allow_downcast)
 
 
-def load_state(path):
+def load_state(path, *, allow_downcast=False):
     """The ``State`` saved in ``path``; ``CorruptFileError`` if there is none."""
-    state = _load(path, parts=("state",)).state
+    state = _load(path, parts=("state",), allow_downcast=allow_downcast).state
     if state is None:
         raise CorruptFileError(f"state missing in {path}")
     return state
 
 
-def load_history(path) -> dict:
+def load_history(path, *, allow_downcast=False) -> dict:
     """The history dict saved in ``path`` (``{}`` if none was saved)."""
-    return _load(path, parts=("history",)).history or {}
+    return _load(path, parts=("history",), allow_downcast=allow_downcast).history or {}

@@ -157,3 +157,32 @@ def test_record_every_zero_is_refused():
         _run(state, params, config, record_every=0)
     with pytest.raises(InputError, match=r"n_steps must be >= 0, got -100"):
         _run(state, params, config, n_steps=-100)
+
+
+def test_out_that_is_a_file_or_cannot_be_written_is_refused(tmp_path, capsys):
+    import os
+
+    from jdem import cli
+
+    afile = tmp_path / "a_file"
+    afile.write_text("x")
+    assert cli.main(["ucs", "--small", "--out", str(afile)]) == 2
+    assert "is a file, not a folder" in capsys.readouterr().err
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    os.chmod(locked, 0o500)
+    try:
+        if os.access(locked, os.W_OK):      # running as root: permissions do not bind
+            pytest.skip("permissions are not enforced for this user")
+        assert cli.main(["ucs", "--small", "--out", str(locked / "sub")]) == 2
+        assert "cannot be created" in capsys.readouterr().err
+    finally:
+        os.chmod(locked, 0o700)
+
+
+def test_resume_without_a_checkpoint_is_refused(tmp_path):
+    from jdem import cli
+
+    with pytest.raises(InputError, match="--resume: no checkpoint"):
+        cli._resume_file(tmp_path / "ucs_checkpoint.h5", True)
+    assert cli._resume_file(tmp_path / "ucs_checkpoint.h5", False) is None

@@ -199,3 +199,32 @@ def test_nested_history_and_attrs_are_groups(tmp_path):
         assert f.attrs["format_version"] == 2
     with pytest.raises(InputError, match="names"):
         io.save_run(tmp_path / "bad.h5", history={"a": {"b/c": np.zeros(2)}})
+
+
+def test_a_float64_file_is_not_rounded_silently_in_a_float32_process(tmp_path):
+    state, params, config = build_state()
+    path = io.save_run(tmp_path / "f64.h5", state=state, params=params, config=config)
+    jax.config.update("jax_enable_x64", False)
+    try:
+        with pytest.raises(io.PrecisionError, match="pos .*float64 but JAX runs in float32"):
+            io.load_run(path)
+        back = io.load_run(path, allow_downcast=True)        # explicit opt-in
+        assert back.state.particles.pos.dtype == jnp.float32
+    finally:
+        jax.config.update("jax_enable_x64", True)
+    assert io.load_run(path).state.particles.pos.dtype == jnp.float64
+
+
+def test_a_config_without_dim_or_of_another_dimension_is_refused(tmp_path):
+    state, params, config = build_state()
+    path = io.save_run(tmp_path / "run.h5", state=state, params=params, config=config)
+    with h5py.File(path, "a") as f:
+        del f["config"].attrs["dim"]
+    with pytest.raises(io.CorruptFileError, match="no 'dim'"):
+        io.load_run(path)
+    with h5py.File(path, "a") as f:     # a consistent 3D config beside a 2D state
+        f["config"].attrs["dim"] = 3
+        f["config"].attrs["grid_origin"] = "[0.0, 0.0, 0.0]"
+        f["config"].attrs["grid_shape"] = "[10, 12, 1]"
+    with pytest.raises(io.CorruptFileError, match="dimension 2 but config.dim = 3"):
+        io.load_run(path)
