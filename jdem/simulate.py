@@ -27,6 +27,7 @@
 from __future__ import annotations
 
 import functools
+import time
 from typing import Callable, NamedTuple
 
 import jax
@@ -262,7 +263,8 @@ def _check_inputs(state: State, params: Params, config: Config, batched: bool, c
 
 def run(state: State, params: Params, config: Config, n_steps: int, *, record_every: int = 100,
         observe: Callable | None = None, chunk_steps: int | None = None, progress=True,
-        batched=False, check_dt=True, desc="jdem", boundary=None) -> RunResult:
+        batched=False, check_dt=True, desc="jdem", boundary=None, checkpoint=None,
+        checkpoint_every=60.0, resume=None) -> RunResult:
     """Run ``n_steps`` steps in jitted chunks; see the module docstring.
 
     n_steps       total steps; must be a multiple of ``record_every``
@@ -280,6 +282,12 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
                   (see :func:`jdem.integrate.physics_step`); ``fn`` must be a
                   module-level function so compiled chunks are cached, ``data``
                   a pytree (batched runs: leading batch axis)
+    checkpoint    HDF5 path: state, config and the records so far are saved there
+                  (atomically, :func:`jdem.io.save_run`) every ``checkpoint_every``
+                  seconds, at the end, and when the run is interrupted (Ctrl-C)
+    resume        such a checkpoint of the same run (same ``n_steps``,
+                  ``record_every`` and initial state's shapes): the run continues
+                  from it, bit for bit, and the history holds every record
     """
     record_every = require_int("record_every", record_every, 1)
     n_steps = require_int("n_steps", n_steps, 0)
@@ -300,6 +308,11 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
     history: list[dict] = []
     failures: list[MemberFailure] = []
     done = 0
+    if resume is not None:
+        state, config, history, done = _resumed(resume, state, n_steps, record_every)
+        if bar is not None:
+            bar.update(done * record_every)
+    last_save, status = time.time(), "interrupted"
     try:
         while done < total_records:
             n_rec = min(per_chunk, total_records - done)
@@ -330,9 +343,20 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
             done += n_rec
             if bar is not None:
                 bar.update(n_rec * record_every)
+            if checkpoint is not None and time.time() - last_save >= checkpoint_every:
+                _save_checkpoint(checkpoint, state, params, config, history, done, n_steps,
+                                 record_every, "running")
+                last_save = time.time()
+        status = "done"
+    except SimulationDiverged:
+        status = "diverged"
+        raise
     finally:
         if bar is not None:
             bar.close()
+        if checkpoint is not None and status != "diverged":
+            _save_checkpoint(checkpoint, state, params, config, history, done, n_steps,
+                             record_every, status)
     for f in failures:   # a set-aside member ends in its last good state
         state = _put_member(state, f.member, f.last_good_state)
     if failures:
@@ -436,6 +460,35 @@ def _set_aside(state, new_state, params, config, bad, failures, hist, record_eve
         blank_member_records(hist, b, max(0, (first - start) // record_every))
         new_state = _put_member(new_state, b, inert(good))
     return new_state
+
+
+def _save_checkpoint(path, state, params, config, history, done, n_steps, record_every, status):
+    from jdem import io
+
+    records = _stack(history, False)   # chunk layout: records on axis 0
+    io.save_run(path, state=state, params=params, config=config, history={"records": records},
+                attrs={"run": dict(n_steps=n_steps, record_every=record_every,
+                                   records_done=done, status=status)})
+
+
+def _resumed(path, state, n_steps, record_every):
+    """``(state, config, [records], records_done)`` of a checkpoint of this run."""
+    from jdem import io
+
+    rd = io.load_run(path, numpy=True)
+    meta = (rd.attrs or {}).get("run")
+    if meta is None or rd.state is None:
+        raise InputError(f"resume: {path} is not a jdem.run checkpoint")
+    if (int(meta["n_steps"]), int(meta["record_every"])) != (n_steps, record_every):
+        raise InputError(f"resume: {path} is a run of n_steps = {meta['n_steps']}, record_every "
+                         f"= {meta['record_every']}; this call asks {n_steps}, {record_every}")
+    mine = jax.tree_util.tree_map(np.shape, state.particles)
+    theirs = jax.tree_util.tree_map(np.shape, rd.state.particles)
+    if mine != theirs:
+        raise InputError(f"resume: the particles in {path} have other shapes than the state "
+                         f"given (another specimen?)")
+    records = (rd.history or {}).get("records") or {}
+    return rd.state, rd.config, ([records] if records else []), int(meta["records_done"])
 
 
 def _chunk_records(total: int, target: int) -> int:

@@ -149,3 +149,34 @@ def test_a_pure_rollout_that_overflows_its_list_says_so_and_its_records_are_nan(
     res = jdem.run(small, params, cfg, 30, record_every=10, progress=False)
     _, roomy = jdem.rollout(state, params, cfg, 3, 10)
     np.testing.assert_array_equal(res.history["kinetic_energy"], roomy["kinetic_energy"])
+
+
+def test_an_interrupted_run_is_checkpointed_and_resumes_bit_for_bit(tmp_path, monkeypatch):
+    from jdem import simulate
+
+    state, params, cfg, crit = _box()
+    params = params._replace(dt=jnp.asarray(0.1 * crit))
+    kw = dict(record_every=100, chunk_steps=500, progress=False)
+    whole = jdem.run(state, params, cfg, 3000, **kw)
+    real, calls = simulate.check_current_step, []
+
+    def interrupt_third_chunk(*a, **k):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(simulate, "check_current_step", interrupt_third_chunk)
+    path = tmp_path / "run.h5"
+    with pytest.raises(KeyboardInterrupt):
+        jdem.run(state, params, cfg, 3000, checkpoint=path, **kw)
+    monkeypatch.setattr(simulate, "check_current_step", real)
+    saved = jdem.io.load_run(path)
+    assert saved.attrs["run"]["records_done"] == 10 and saved.attrs["run"]["status"] == "interrupted"
+    back = jdem.run(state, params, cfg, 3000, resume=path, **kw)
+    for key in whole.history:
+        np.testing.assert_array_equal(back.history[key], whole.history[key], err_msg=key)
+    for a, b in zip(jax.tree_util.tree_leaves(back.state), jax.tree_util.tree_leaves(whole.state)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(InputError, match="n_steps = 3000"):
+        jdem.run(state, params, cfg, 2000, resume=path, **kw)
