@@ -399,21 +399,31 @@ def step_margin(state: State, params: Params, config: Config, batched=False):
 def check_current_step(state, params, config, failures, batched, history_so_far):
     """Between chunks: stop (one system: :class:`SimulationDiverged`) or set
     aside (a batch member: a :class:`MemberFailure` appended to ``failures``,
-    the member made inert in the returned state) when the critical step of the
-    current contacts has fallen below ``params.dt``, with the chunk's end state,
+    the member made inert in the returned state) when two facing walls have
+    passed each other (:func:`jdem.walls.crossed_pair`) or the critical step of
+    the current contacts has fallen below ``params.dt``, with the chunk's end state,
     still finite, as the last good state.  ``history_so_far()`` gives the
     history for the error."""
+    from jdem.walls import crossed_pair
+
     ratio = np.atleast_1d(step_margin(state, params, config, batched))
     done = {f.member for f in failures}
-    for b in np.flatnonzero(ratio > 1.0):
-        if int(b) in done:
+    for b in range(ratio.size):
+        if b in done:
             continue
         good = _member(state, b) if batched else state
         step = int(np.asarray(good.step))
         dt = float(np.asarray(params.dt).reshape(-1)[b])
-        reason = (f"the critical time step of the current contacts fell to {dt / ratio[b]:.4g} s, "
-                  f"below params.dt = {dt:.4g} s, by step {step} (dashpots included; "
-                  f"jdem.timestep.critical_timestep)")
+        crossed = crossed_pair(good.walls)
+        if crossed is not None:
+            reason = (f"walls {crossed[0]} and {crossed[1]} have passed each other by step "
+                      f"{step} (gap {crossed[2]:.3g} m)")
+        elif ratio[b] > 1.0:
+            reason = (f"the critical time step of the current contacts fell to "
+                      f"{dt / ratio[b]:.4g} s, below params.dt = {dt:.4g} s, by step {step} "
+                      f"(dashpots included; jdem.timestep.critical_timestep)")
+        else:
+            continue
         if not batched:
             raise SimulationDiverged(step, good, history_so_far(), reason)
         failures.append(MemberFailure(int(b), step, reason, good))

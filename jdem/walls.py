@@ -19,6 +19,7 @@ and 0 < alpha < 1 (``servo_gain``) keeps the wall from over-shooting in one step
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from jdem.contact import dashpot, normal_law, pair_friction, tangential_update
 from jdem.kinematics import components, computed_once, cross_r_f, cross_w_r, dot, scale
@@ -109,3 +110,20 @@ def _servo(walls: Walls, kn_sum, params: Params) -> Walls:
 def advance(walls: Walls, dt) -> Walls:
     """Move every wall by its velocity over one step."""
     return walls._replace(point=walls.point + walls.vel * dt)
+
+
+def crossed_pair(walls: Walls):
+    """Two facing walls (opposite normals, both valid) that have passed each
+    other: their gap (p_b - p_a) . n_a is no longer positive, so no particle can
+    lie between them.  Host-side (NumPy) on one system's walls; returns
+    ``(a, b, gap [m])`` of the first such pair, or ``None``."""
+    point, normal = np.asarray(walls.point), np.asarray(walls.normal)
+    valid = np.asarray(walls.valid)
+    for a in range(point.shape[0]):
+        for b in range(a + 1, point.shape[0]):
+            if valid[a] and valid[b] and float(normal[a] @ normal[b]) < -0.999:
+                gap = float((point[b] - point[a]) @ normal[a])
+                if gap <= 0.0:
+                    return a, b, gap
+    return None
+

@@ -180,3 +180,22 @@ def test_an_interrupted_run_is_checkpointed_and_resumes_bit_for_bit(tmp_path, mo
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     with pytest.raises(InputError, match="n_steps = 3000"):
         jdem.run(state, params, cfg, 2000, resume=path, **kw)
+
+
+def test_walls_that_pass_each_other_stop_the_run():
+    """Two facing walls of a near spring-less material (1e-9 N/m) driven towards each other:
+    the run stops once they have crossed, naming both."""
+    from jdem.walls import crossed_pair
+
+    pos, rad, (w, h) = _loose_discs(3, 3, gap=0.3, seed=1)
+    p = jdem.make_particles(pos, rad)
+    walls = jdem.make_walls([[0.0, 0.0], [0.0, h]], [[0, 1], [0, -1]], n_particles=len(pos),
+                            vel=[[0.0, 0.5], [0.0, -0.5]], material=[1, 1])
+    params = jdem.make_params(dim=2, n_materials=2, kn=[1e6, 1e-9], ks=[1e6, 1e-9], friction=0.3,
+                              dt=1e-5)
+    state, cfg = jdem.make_state(p, walls=walls)
+    assert crossed_pair(state.walls) is None
+    t_cross = h / 1.0                           # closing at 1 m/s
+    with pytest.raises(jdem.SimulationDiverged, match="walls 0 and 1 have passed each other"):
+        jdem.run(state, params, cfg, 100 * int(np.ceil(2 * t_cross / 1e-5 / 100)),
+                 record_every=100, chunk_steps=100, progress=False)
