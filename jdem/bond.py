@@ -49,8 +49,9 @@ class BondGeometry(NamedTuple):
     length  (B,)  L = R1 + R2 [m]
     kn      (B,)  K_n = E A_c / L [N/m]
     ks      (B,)  K_s = G A_c / L [N/m], G = E / (2 (1 + nu))
-    J       (B,)  polar moment pi min(2R1, 2R2)^4 / 32 [m^4] (used in 2D and 3D)
-    I       (B,)  second moment J / 2 [m^4]
+    J       (B,)  polar moment pi min(2R1, 2R2)^4 / 32 [m^4] (002 eq 5)
+    I       (B,)  second moment J / 2 [m^4] (002 eq 5); with ``section = "slab"``
+                  (2D) the unit-thickness bar's 1 m x min(2R1, 2R2)^3 / 12, J = 2 I
     r_min   (B,)  min(R1, R2) [m] (outer fibre distance of ineq 11)
     """
 
@@ -67,8 +68,10 @@ def _shear_modulus(params: Params):
     return params.bond_youngs / (2.0 * (1.0 + params.bond_poisson))
 
 
-def bond_geometry(bonds: Bonds, particles: Particles, params: Params, dim: int) -> BondGeometry:
-    """Cross-section, length, stiffnesses and moments of area of every bond row."""
+def bond_geometry(bonds: Bonds, particles: Particles, params: Params, dim: int,
+                  section: str = "circular") -> BondGeometry:
+    """Cross-section, length, stiffnesses and moments of area of every bond row;
+    ``section`` the 2D bending section (:class:`jdem.state.Config` ``bond_section``)."""
     valid = bonds.valid
     r1 = particles.radius[bonds.i]
     r2 = particles.radius[bonds.j]
@@ -82,8 +85,12 @@ def bond_geometry(bonds: Bonds, particles: Particles, params: Params, dim: int) 
     g_mod = _shear_modulus(params)
     kn = e_mod * area / _den(length)             # 002 eq 2
     ks = g_mod * area / _den(length)
-    polar = jnp.pi * (2.0 * r_min) ** 4 / 32.0   # 002 eq 5
-    inertia = 0.5 * polar
+    if dim == 2 and section == "slab":           # a bar of unit thickness, width 2 r_min
+        inertia = (2.0 * r_min) ** 3 / 12.0
+        polar = 2.0 * inertia
+    else:
+        polar = jnp.pi * (2.0 * r_min) ** 4 / 32.0   # 002 eq 5
+        inertia = 0.5 * polar
     z = lambda a: jnp.where(valid, a, jnp.zeros_like(a))
     return BondGeometry(area=z(area), length=z(length), kn=z(kn), ks=z(ks), J=z(polar),
                         I=z(inertia), r_min=z(r_min))
@@ -159,13 +166,15 @@ def create_bonds(particles: Particles, dim: int, *, gap_tolerance: float,
     return bonds._replace(i=jnp.asarray(ii), j=jnp.asarray(jj), valid=jnp.asarray(ok))
 
 
-def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, step):
+def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, step,
+                section: str = "circular"):
     """One explicit incremental update of every bond (002 eq 3-13).
 
     Arguments: ``bonds`` (capacity B), ``particles`` (capacity N; ``vel`` and
     ``angvel`` are the velocities over the step), ``params`` (``dt`` and the
     ``bond_*`` fields), ``dim`` (2 or 3, static) and ``step`` (int, the current
-    step number, stored in ``break_step`` when a bond breaks).
+    step number, stored in ``break_step`` when a bond breaks); ``section`` the 2D
+    bending section (``Config.bond_section``, see :func:`bond_geometry`).
 
     Returns ``(new_bonds, force (N, d) [N], torque (N,) or (N, 3) [N m])``.
     Invalid rows contribute nothing and keep zero history.
@@ -183,7 +192,7 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     """
     valid = bonds.valid
     i, j = bonds.i, bonds.j
-    geo = bond_geometry(bonds, particles, params, dim)
+    geo = bond_geometry(bonds, particles, params, dim, section)
     area, length, kn, ks = geo.area, geo.length, geo.kn, geo.ks
     area_d, length_d = _den(area), _den(length)
     dt = params.dt

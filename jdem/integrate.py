@@ -42,7 +42,8 @@ def _forces(state: State, params: Params, config: Config):
                                                       report_depth=True)
     bonds = state.bonds
     if bonds.i.shape[0] > 0:
-        bonds, fb, tb = bond.bond_forces(bonds, p, params, config.dim, state.step)
+        bonds, fb, tb = bond.bond_forces(bonds, p, params, config.dim, state.step,
+                                         config.bond_section)
         f, t = f + fb, t + tb
     walls, fw, tw, _ = walls_mod.wall_forces(state.walls, p, params, config)
     f = f + fw + p.ext_force + p.gravity_mass[:, None] * params.gravity

@@ -240,6 +240,7 @@ class Params(NamedTuple):
 
 CONTACT_MODELS = ("linear", "hertz")
 FRICTION_RULE_NAMES = ("smaller", "mean", "geometric")  # jdem.contact.FRICTION_RULES
+BOND_SECTIONS = ("circular", "slab")                     # jdem.bond.bond_geometry
 
 
 @dataclasses.dataclass(frozen=True)
@@ -258,6 +259,12 @@ class Config:
                       material): "smaller" (default), "mean", "geometric", or a
                       symmetric M x M table (tuple of tuples) of coefficients,
                       which replaces ``Params.friction`` (not differentiated)
+    bond_section      bending section of a 2D bond: "circular" (default: 002 eq 5,
+                      I = pi min(2R1, 2R2)^4 / 64, as the seed) or "slab" (the
+                      unit-thickness bar of a 2D model, I = 1 m x min(2R1, 2R2)^3 / 12).
+                      The circular section is ~1.2e-3 of the slab's for 1 mm discs
+                      and scales with the disc size in metres (not scale-free);
+                      3D bonds are always circular
 
     The neighbour-list capacity C is the length of the ``Contacts`` arrays
     (a property of the state, not of the configuration).
@@ -271,6 +278,7 @@ class Config:
     grid_shape: tuple = (1, 1)
     max_per_cell: int = 8
     friction_mixing: str | tuple = "smaller"
+    bond_section: str = "circular"
 
     def __post_init__(self):
         if not isinstance(self.friction_mixing, str):   # a table: hashable tuples of floats

@@ -71,7 +71,7 @@ def _stiffness_sums(state: State, params: Params, config: Config):
         k_rot = k_rot + jnp.sum(jnp.where(touch, wkt * p.radius[None] ** 2, 0.0), axis=0)
     b = state.bonds
     if b.i.shape[0]:
-        g = bond.bond_geometry(b, p, params, config.dim)
+        g = bond.bond_geometry(b, p, params, config.dim, config.bond_section)
         live = b.valid
         bk = jnp.where(live, g.kn + g.ks, 0.0)
         k_tr = k_tr + segment_add(bk, b.i, n) + segment_add(bk, b.j, n)
@@ -100,7 +100,7 @@ def _dashpot_sums(state: State, params: Params, config: Config):
         c_tr = c_tr + jnp.sum(cw, axis=0)
     b = state.bonds
     if b.i.shape[0]:
-        g = bond.bond_geometry(b, p, params, config.dim)
+        g = bond.bond_geometry(b, p, params, config.dim, config.bond_section)
         live = b.valid & ~b.broken                           # bond dashpots: intact only
         mb = p.mass[b.i] * p.mass[b.j] / jnp.where(live, p.mass[b.i] + p.mass[b.j], 1.0)
         visc = lambda k: jnp.where(live, 2.0 * params.bond_damping * jnp.sqrt(

@@ -216,6 +216,14 @@ def check_config(config, contact_models, friction_rules):
         v = float(getattr(config, name))
         if not np.isfinite(v) or v <= 0:
             raise InputError(f"Config.{name} must be a positive finite length, got {v!r}")
+    from jdem.state import BOND_SECTIONS
+
+    if config.bond_section not in BOND_SECTIONS:
+        raise InputError(f"Config.bond_section must be one of {BOND_SECTIONS}, "
+                         f"got {config.bond_section!r}")
+    if config.bond_section == "slab" and config.dim != 2:
+        raise InputError("Config.bond_section = 'slab' is a 2D section; 3D bonds are circular "
+                         f"(got dim = {config.dim})")
     rule = config.friction_mixing
     if isinstance(rule, str):
         if rule not in friction_rules:

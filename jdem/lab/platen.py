@@ -369,9 +369,10 @@ def platen_setup(test: LabTest, specimens, params, *, max_strain=3e-3, loading_r
                  platen_step=None, confining_stress=None, damping=None, record_every=None,
                  ramp_transits=DEFAULT_RAMP_TRANSITS, preload_transits=DEFAULT_PRELOAD_TRANSITS,
                  dt=None, stiffness_margin=1.0, platen_material=PLATEN, diameter=None,
-                 disc=False, top_stress=None) -> Setup:
+                 disc=False, top_stress=None, bond_section="circular") -> Setup:
     """Build a platen test (see the test objects :data:`UCS`, :data:`BIAXIAL`,
-    :data:`BRAZILIAN` for the arguments)."""
+    :data:`BRAZILIAN` for the arguments; ``bond_section`` is the 2D bonds'
+    bending section, :class:`jdem.state.Config`)."""
     damping = damping_mod.check(damping_mod.smooth() if damping is None else damping)
     single = hasattr(specimens, "particles") or (isinstance(specimens, tuple)
                                                  and not hasattr(specimens[0], "particles")
@@ -431,6 +432,7 @@ def platen_setup(test: LabTest, specimens, params, *, max_strain=3e-3, loading_r
             walls = walls._replace(servo=walls.servo.at[1].set(True),
                                    target_stress=walls.target_stress.at[1].set(top_stress))
         state, config = make_state(particles, walls=walls, bonds=bonds)
+        config = config.replace(bond_section=bond_section)
         built.append((particles, info, state, config, h_box, widths, n_lat))
     dim = int(built[0][0].pos.shape[1])
     ax = dim - 1
@@ -556,6 +558,9 @@ _COMMON = """
                      critical step with the platens touching, for stiffnesses
                      ``stiffness_margin`` times those of ``params``, so that a
                      calibration may raise E that far)
+    bond_section     2D bending section of the bonds: "circular" (default, 002
+                     eq 5 as the seed) or "slab" (unit thickness), see
+                     :class:`jdem.state.Config`
 """
 
 UCS = _make("ucs", derive_box, """Uniaxial compression (002 §2): fixed bottom

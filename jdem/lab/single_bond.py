@@ -133,7 +133,7 @@ def single_bond_observe(state, params, config):
     the upper one, points to -x), ``shear_stress`` = |F_s| / A_c,
     ``normal_stress`` = F_n / A_c (compression positive)."""
     b = state.bonds
-    geo = bond_mod.bond_geometry(b, state.particles, params, config.dim)
+    geo = bond_mod.bond_geometry(b, state.particles, params, config.dim, config.bond_section)
     area, length = geo.area[0], geo.length[0]
     dmg = bond_mod.damage(b)
     u_s = b.u_s[0]
