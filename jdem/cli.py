@@ -16,7 +16,8 @@ override.
     [specimen]  width, height [m], r_min, r_max [m], seed (int), porosity (target,
                 omit for the densest packing), coordination (target N-bar, default 5)
     [material]  E [Pa], nu, T0 [Pa], c0 [Pa], phi_deg, kappa (fracture strain, or a
-                list of them: one batched sweep), density [kg/m^3]
+                list of them: one batched sweep), density [kg/m^3], bond_section
+                ("circular", the seed's 002 eq 5, or "slab": unit thickness)
     [loading]   loading_rate (platen speed / wave speed; default quasi-static,
                 see jdem.lab.platen), platen_step [m per step] (instead of
                 loading_rate; 0 = unused), max_strain, damping ("smooth", the
@@ -104,7 +105,7 @@ UCS_DEFAULTS = {
     "specimen": dict(width=0.05, height=0.10, r_min=0.228e-3, r_max=0.422e-3, seed=0,
                      porosity=None, coordination=5.0),
     "material": dict(E=30e9, nu=0.22, T0=3e6, c0=3e6, phi_deg=30.0, kappa=3e-3,
-                     density=2500.0),
+                     density=2500.0, bond_section="circular"),
     "loading": dict(loading_rate=4e-6, platen_step=0.0, max_strain=3e-3, damping="smooth",
                     local_damping=0.8, stop_stress_ratio=0.3, record_every=0),
 }
@@ -183,6 +184,11 @@ def ucs_settings(config_path=None, small=False, defaults=None) -> dict:
     _number("material.c0", mat["c0"], lo=0)
     _number("material.phi_deg", mat["phi_deg"], lo=0, hi=90, hi_open=True)
     _number("material.density", mat["density"], lo=0, lo_open=True)
+    from jdem.state import BOND_SECTIONS
+
+    if mat["bond_section"] not in BOND_SECTIONS:
+        raise InputError(f"material.bond_section must be one of {', '.join(BOND_SECTIONS)}, "
+                         f"got {mat['bond_section']!r}")
     kap = mat["kappa"]
     if isinstance(kap, list):
         if not kap:
@@ -265,7 +271,8 @@ def ucs(config=None, out="results/ucs", small=False, progress=True, animate=Fals
     rate = dict(platen_step=ld["platen_step"]) if ld["platen_step"] else \
         dict(loading_rate=ld["loading_rate"])
     setup = lab.UCS.setup(spec, params, max_strain=ld["max_strain"], damping=damping,
-                          record_every=ld["record_every"] or None, **rate)
+                          record_every=ld["record_every"] or None,
+                          bond_section=mat["bond_section"], **rate)
     print(f"  {setup.plan.n_records * setup.plan.record_every} steps at loading rate "
           f"{setup.plan.option('loading_rate'):.3g} (platen / wave speed), damping "
           f"{setup.plan.damping}")
@@ -412,7 +419,7 @@ def calibrate_cli(curve, config=None, out="results/calibrate", small=False, prog
     max_strain = ld["max_strain"] or 1.05 * float(target.strain[-1])
     setup = lab.UCS.setup(specs if len(specs) > 1 else specs[0], params, max_strain=max_strain,
                           damping=damping, record_every=ld["record_every"] or None,
-                          stiffness_margin=2.0, **rate)
+                          stiffness_margin=2.0, bond_section=mat["bond_section"], **rate)
     start = {n: _start_value(n, mat) for n in fit["parameters"]}
     bounds = {n: tuple(b) for n, b in fit["bounds"].items()}
     print(f"  fitting {', '.join(start)} ({fit['method']}, at most {fit['steps']} iterations); "

@@ -77,3 +77,16 @@ def test_a_ucs_setup_carries_the_section_and_the_slab_is_stiffer_in_rotation():
     # the slab's bending springs are ~1e3 x stiffer: the critical step falls
     crit = lambda su: float(timestep.critical_timestep(su.state, su.params, su.plan.config))
     assert crit(slab) < crit(circ)
+
+
+def test_the_toml_material_section_takes_the_bond_section(tmp_path):
+    from jdem import cli
+
+    good = tmp_path / "slab.toml"
+    good.write_text('[material]\nbond_section = "slab"\n')
+    assert cli.ucs_settings(good)["material"]["bond_section"] == "slab"
+    assert cli.ucs_settings(None)["material"]["bond_section"] == "circular"
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[material]\nbond_section = "square"\n')
+    with pytest.raises(InputError, match="material.bond_section must be one of circular, slab"):
+        cli.ucs_settings(bad)
