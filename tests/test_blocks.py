@@ -233,11 +233,12 @@ def test_friction_and_stiffness_recovered_from_a_sliding_history():
     """Differentiable block method: the friction coefficient and the joint
     stiffness of a block sliding down a 35 degree slope (phi = 30) are recovered
     from its recorded downhill travel and settlement (least squares,
-    forward-mode Jacobian through the rollout), from -20 % and -50 % starts.
+    forward-mode Jacobian through the rollout, by jdem.calibrate.fit_model: the
+    calibration's bounded transform, solver and intervals), from -20 % and -50 % starts.
     (A start above the slope's angle would not slide: no information on mu; the
     contact dashpots at 0.7 of critical damp the bounce, which would otherwise
     make the misfit oscillate in k_n.)"""
-    import optimistix as optx
+    from jdem.calibrate import fit_model
 
     state, p, config = _incline(0.5, 0.5, 35.0, 30.0, kn=2e8, zeta=0.7)
     n_rec, every = 40, 100
@@ -251,16 +252,13 @@ def test_friction_and_stiffness_recovered_from_a_sliding_history():
     truth = (float(p.friction[0, 0]), float(p.kn[0, 0]))
     x_t, y_t = history(*truth)
 
-    def residuals(u, _):
-        x, y = history(truth[0] * jnp.exp(u[0]), truth[1] * jnp.exp(u[1]))
-        return jnp.concatenate([(x - x_t) / jnp.max(jnp.abs(x_t)),
-                                (y - y_t) / jnp.max(jnp.abs(y_t))])
-
-    u0 = jnp.log(jnp.asarray([0.8, 0.5]))
-    sol = optx.least_squares(residuals, optx.LevenbergMarquardt(rtol=1e-8, atol=1e-12), u0,
-                             options=dict(jac="fwd"), max_steps=30, throw=False)
-    got = np.exp(np.asarray(sol.value))
-    np.testing.assert_allclose(got, [1.0, 1.0], rtol=1e-3)
+    fit = fit_model(lambda v: history(v["friction"], v["kn"]), (x_t, y_t),
+                    {"friction": 0.8 * truth[0], "kn": 0.5 * truth[1]})
+    np.testing.assert_allclose([fit.values["friction"] / truth[0], fit.values["kn"] / truth[1]],
+                               [1.0, 1.0], rtol=1e-3)
+    assert fit.converged and fit.loss < 1e-10 and not fit.undetermined
+    for name in ("friction", "kn"):     # an exact-data fit: tiny, finite standard errors
+        assert 0 <= fit.stderr[name] < 1e-3 * fit.values[name]
 
 
 # ----------------------------------------------------------------------------- generation, files

@@ -28,7 +28,9 @@ Modules
 * :mod:`jdem.calibrate.transform` the bounded transform and default bounds;
 * :mod:`jdem.calibrate.solvers` the optimistix / optax steps and Jacobians;
 * :mod:`jdem.calibrate.result` :class:`CalibrationResult`, uncertainty, files, report;
-* :mod:`jdem.calibrate.demo` the demonstration problem.
+* :mod:`jdem.calibrate.demo` the demonstration problem;
+* :mod:`jdem.calibrate.model` :func:`fit_model`: the same transform, solver and
+  uncertainty for any differentiable model (rigid blocks, waves, a rollout).
 """
 from jdem.materials import PARAMETERS, check_names, material, rock_params, values_of  # noqa: F401
 from jdem.targets import (LossWeights, Scalar, Target, check_scalar, curve_loss,  # noqa: F401
@@ -38,4 +40,5 @@ from jdem.calibrate.problem import Term, calibration_loss, peakless, term_residu
 from jdem.calibrate.result import (CalibrationResult, load_calibration, report,  # noqa: F401
                                    save_calibration)
 from jdem.calibrate.fit import FORWARD_MODE_MAX, METHODS, calibrate  # noqa: F401
+from jdem.calibrate.model import ModelFit, fit_model  # noqa: F401
 from jdem.calibrate.demo import DEMO_TRUE, demo_problem  # noqa: F401
