@@ -39,6 +39,7 @@ class BarModel(NamedTuple):
     amplitude, duration  the input pulse (001 eq 12) [m/s], [s]
     n_steps, record_every
     input        "velocity" (left discs driven) or "viscous" (001 eq 6)
+    polarisation "P" (motion along the bar, x) or "S" (transverse, y)
     """
 
     state: object
@@ -56,17 +57,33 @@ class BarModel(NamedTuple):
     n_steps: int
     record_every: int
     input: str
+    polarisation: str = "P"
 
 
 
 INPUTS = ("velocity", "viscous")
+POLARISATIONS = ("P", "S")
+
+
+
+def _motion(polarisation):
+    """The component (0: x, 1: y) the discs of a bar of ``polarisation`` move in."""
+    return 0 if polarisation == "P" else 1
+
+
+
+def wave_speed(model: "BarModel") -> float:
+    """The nominal speed [m/s] of the bar's wave: c_P, or c_S = c_P / sqrt 2 for
+    an S bar (the value its boundaries use)."""
+    return model.c_p if model.polarisation == "P" else model.c_p / math.sqrt(2.0)
 
 
 
 def bar_model(particles, bonds, *, length, height, c_p=1000.0, density=2500.0, amplitude=0.5,
               duration=0.5, input="velocity", beta_left=1.0, beta_right=1.0, k_right=0.0,
               t_end=None, dt_factor=0.5, record_every=1, chunk_steps=2000, dt=None,
-              right: BoundarySet | None = None, monitors: tuple | None = None) -> BarModel:
+              right: BoundarySet | None = None, monitors: tuple | None = None,
+              polarisation="P") -> BarModel:
     """The P-wave bar of 001 §2.2 on a given packing of [0, length] x [0, height].
 
     Every disc's y velocity is fixed (001 Fig 1).  The left boundary carries the
@@ -84,9 +101,19 @@ def bar_model(particles, bonds, *, length, height, c_p=1000.0, density=2500.0, a
     ``right`` (a :class:`BoundarySet`) the right boundary discs (default
     :func:`boundary_particles` on "right"), ``monitors`` (5 tuples of disc rows)
     the monitor groups P1..P5.
+
+    ``polarisation="S"`` makes it the same bar for a transverse (S) pulse: every
+    disc's x velocity is fixed instead, the pulse drives (or enters through) the
+    left boundary along +y, the boundaries' tangential dashpots (beta_S D rho
+    c_S, c_S = c_P / sqrt 2) absorb it, and ``t_end`` defaults to
+    2 length / c_S + duration.  With bond nu = 0 and fixed rotations, a square
+    arrangement of equal discs carries it at c_S (K_s = E_b / 2).
     """
     if input not in INPUTS:
         raise InputError(f"input must be one of {INPUTS}, got {input!r}")
+    if polarisation not in POLARISATIONS:
+        raise InputError(f"polarisation must be one of {POLARISATIONS}, got {polarisation!r}")
+    along = _motion(polarisation)
     length = float(require_positive("length", length))
     height = float(require_positive("height", height))
     for name, v in (("amplitude", amplitude), ("duration", duration), ("dt_factor", dt_factor)):
@@ -97,7 +124,7 @@ def bar_model(particles, bonds, *, length, height, c_p=1000.0, density=2500.0, a
         raise InputError(f"record_every = {record_every} must divide chunk_steps = {chunk_steps}")
     dtype = particles.pos.dtype
     params = wave_params(c_p, density)
-    parts = particles._replace(fixed_vel=particles.fixed_vel.at[:, 1].set(True))
+    parts = particles._replace(fixed_vel=particles.fixed_vel.at[:, 1 - along].set(True))
     state, config = make_state(parts, bonds=bonds)
     step = stable_dt(state, params, config, dt_factor) if dt is None else float(
         require_positive("dt", dt))
@@ -106,11 +133,11 @@ def bar_model(particles, bonds, *, length, height, c_p=1000.0, density=2500.0, a
     left = boundary_particles(parts, "left")
     right = boundary_particles(parts, "right") if right is None else right
     time, vel, disp = cosine_pulse(amplitude, duration)
-    inward = np.array([1.0, 0.0])
+    inward = np.eye(2)[along]                     # P: +x (the inward normal); S: +y
     c_s = c_p / math.sqrt(2.0)
     if input == "velocity":
         v_in, u_in = incident_wave(time, 0 * vel, 0 * disp, inward, dtype)
-        drive = make_driven(left.index, time, vel, inward, mask=(True, False), dtype=dtype)
+        drive = make_driven(left.index, time, vel, inward, mask=tuple(inward > 0), dtype=dtype)
         state = fix_driven(state, drive)
         beta_left = 0.0
     else:
@@ -121,7 +148,7 @@ def bar_model(particles, bonds, *, length, height, c_p=1000.0, density=2500.0, a
     rb = make_boundary(right, parts, density=density, c_p=c_p, c_s=c_s, beta_p=beta_right,
                        beta_s=beta_right, k_n=k_right, k_s=k_right)
     cond = Conditions(boundaries=(lb, rb), driven=(drive,))
-    # nothing is loaded yet (F_eq = 0); the y fixity and the driven x stay
+    # nothing is loaded yet (F_eq = 0); the fixity across the motion and the driven one stay
     state, cond = activate(state, params, config, cond, release=(False, False))
 
     x = np.linspace(0.0, length, 5)
@@ -132,7 +159,7 @@ def bar_model(particles, bonds, *, length, height, c_p=1000.0, density=2500.0, a
     if monitors is not None:
         groups = [tuple(int(k) for k in g) for g in monitors]
     if t_end is None:
-        t_end = 2.0 * length / c_p + duration
+        t_end = 2.0 * length / (c_p if polarisation == "P" else c_s) + duration
     dt = float(params.dt)
     per_chunk = chunk_steps
     n_steps = int(math.ceil(t_end / dt / per_chunk)) * per_chunk
@@ -140,7 +167,7 @@ def bar_model(particles, bonds, *, length, height, c_p=1000.0, density=2500.0, a
                     monitors=Monitors(tuple(groups)), monitor_x=x, length=length, height=height,
                     c_p=float(c_p), density=float(density), amplitude=float(amplitude),
                     duration=float(duration), n_steps=n_steps, record_every=record_every,
-                    input=input)
+                    input=input, polarisation=polarisation)
 
 
 
@@ -181,7 +208,8 @@ def peak(history: dict, monitor: int, direction=(1.0, 0.0)) -> float:
 def reflection(history: dict, model: BarModel, monitor: int = 2) -> dict:
     """Incident and reflected amplitude at a monitor inside the bar (default P3).
 
-    The incident peak ``incident`` is the largest x velocity; the reflected
+    The incident peak ``incident`` is the largest x velocity (y for an S bar,
+    whose nominal speed c_S replaces c_P below); the reflected
     amplitude ``reflected`` the largest |x velocity| after the incident pulse
     has passed (peak time + 0.6 T) and before the wave reflected at the right end
     can come back from the left end (peak time + 2 length / c - 0.6 T), with
@@ -189,12 +217,13 @@ def reflection(history: dict, model: BarModel, monitor: int = 2) -> dict:
     reflected / incident.
     """
     t = history["time"]
-    v = history["vel"][:, :, 0]
+    v = history["vel"][:, :, _motion(model.polarisation)]
     x = model.monitor_x
-    first = lambda k: t[int(np.argmax(np.where(t < x[k] / model.c_p + 2.0 * model.duration,
+    c = wave_speed(model)
+    first = lambda k: t[int(np.argmax(np.where(t < x[k] / c + 2.0 * model.duration,
                                                v[:, k], -np.inf)))]
     t2, t3 = first(1), first(2)
-    speed = (x[2] - x[1]) / (t3 - t2) if t3 > t2 else model.c_p
+    speed = (x[2] - x[1]) / (t3 - t2) if t3 > t2 else c
     tp = first(monitor)
     lo = tp + 0.6 * model.duration
     hi = tp + 2.0 * model.length / speed - 0.6 * model.duration   # back from the left end
@@ -226,7 +255,8 @@ class BarPair(NamedTuple):
     truncated, reference  BarModels on one clock, with the same monitor discs
     clean_until  (5,) [s] at each monitor P1..P5, the earliest time anything
                  from the reference's far end could arrive there
-    record       [s] the part of the record that counts, 2 length / c_p + T
+    record       [s] the part of the record that counts, 2 length / c + T (c = c_P,
+                 or c_S for an S bar)
     """
 
     truncated: BarModel
@@ -249,8 +279,9 @@ def bar_pair(particles, bonds, *, length, height, monitor=2, c_max=None, **kwarg
     [0, length] the two are the same disc for disc, so the packing's own
     scattering is the same in both.  The reference's far end (viscous,
     beta = 1) must be so far away that nothing from there reaches monitor
-    ``monitor`` within the record 2 length / c_p + T: with the fastest speed
-    ``c_max`` (default 1.2 c_p) it arrives at x_m after (2 L_ext - x_m) / c_max;
+    ``monitor`` within the record 2 length / c + T (c_P, or c_S with
+    ``polarisation="S"``): with the fastest speed
+    ``c_max`` (default 1.2 c) it arrives at x_m after (2 L_ext - x_m) / c_max;
     InputError otherwise.  Returns a :class:`BarPair`.
     """
     kw = dict(kwargs)
@@ -261,8 +292,9 @@ def bar_pair(particles, bonds, *, length, height, monitor=2, c_max=None, **kwarg
     right = exposed_particles(parts, "right")
     params = wave_params(kw.get("c_p", 1000.0), kw.get("density", 2500.0))
     dts = []
+    across = 1 - _motion(kw.get("polarisation", "P"))
     for p_, b_ in ((parts, bnd), (particles, bonds)):
-        st, cf = make_state(p_._replace(fixed_vel=p_.fixed_vel.at[:, 1].set(True)), bonds=b_)
+        st, cf = make_state(p_._replace(fixed_vel=p_.fixed_vel.at[:, across].set(True)), bonds=b_)
         dts.append(stable_dt(st, params, cf, kw.get("dt_factor", 0.5)))
     dt = min(dts)                                 # one clock for both models
     trunc = bar_model(parts, bnd, length=length, height=height, right=right, dt=dt, **kw)
@@ -275,9 +307,9 @@ def bar_pair(particles, bonds, *, length, height, monitor=2, c_max=None, **kwarg
     pos = np.asarray(particles.pos, np.float64)
     rad = np.asarray(particles.radius, np.float64)
     l_ext = float(np.max((pos[:, 0] + rad)[np.asarray(particles.valid)]))
-    c = 1.2 * trunc.c_p if c_max is None else float(require_positive("c_max", c_max))
+    c = 1.2 * wave_speed(trunc) if c_max is None else float(require_positive("c_max", c_max))
     clean = (2.0 * l_ext - trunc.monitor_x) / c
-    record = 2.0 * trunc.length / trunc.c_p + trunc.duration
+    record = 2.0 * trunc.length / wave_speed(trunc) + trunc.duration
     if clean[monitor] < record:
         raise InputError(f"the packing is too short for a reference: its far end at {l_ext:.1f} m "
                          f"can reach monitor {monitor} after {clean[monitor]:.3f} s, within the "
