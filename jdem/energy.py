@@ -106,8 +106,8 @@ import numpy as np
 
 from jdem import bond as bond_mod
 from jdem import contact, damping, integrate, neighbors, walls as walls_mod
-from jdem.kinematics import dot
 from jdem.state import Config, Params, State
+from jdem.validate import InputError
 
 #: cumulative work and dissipation terms accumulated by the trapezoid of the module docstring
 WORK_TERMS = ("work_walls", "work_external", "work_gravity", "work_support",
@@ -248,11 +248,12 @@ def contact_energies(contacts, walls, particles, params: Params, config: Config)
     return normal, tang
 
 
-def bond_energies(bonds, particles, params: Params, dim: int):
+def bond_energies(bonds, particles, params: Params, dim: int, section: str = "circular"):
     """Per-bond elastic energies [J], each (B,): ``(normal, shear, bending,
     twisting)`` = F_n^2 / 2K_n, |F_s|^2 / 2K_s, |M_s|^2 / 2K_b, M_n^2 / 2K_t with
-    K_b = K_n I / A_c, K_t = K_s J / A_c (002 eq 4, 5); zero for invalid rows."""
-    geo = bond_mod.bond_geometry(bonds, particles, params, dim)
+    K_b = K_n I / A_c, K_t = K_s J / A_c (002 eq 4, 5; ``section`` the 2D bending
+    section, ``Config.bond_section``); zero for invalid rows."""
+    geo = bond_mod.bond_geometry(bonds, particles, params, dim, section)
     ok = bonds.valid
     area = jnp.where(geo.area > 0, geo.area, 1.0)
     normal = 0.5 * bonds.normal_force ** 2 * _inv(geo.kn, ok)
@@ -274,8 +275,10 @@ def _family_forces(state: State, params: Params, config: Config):
     _, fc0, tc0, _ = contact.contact_forces(state.contacts, p, still, config)
     out = dict(contacts=contacts, fc=fc, tc=tc, fc0=fc0, tc0=tc0)
     if state.bonds.i.shape[0] > 0:
-        bonds, fb, tb = bond_mod.bond_forces(state.bonds, p, params, config.dim, state.step)
-        _, fb0, tb0 = bond_mod.bond_forces(state.bonds, p, still, config.dim, state.step)
+        bonds, fb, tb = bond_mod.bond_forces(state.bonds, p, params, config.dim, state.step,
+                                             config.bond_section)
+        _, fb0, tb0 = bond_mod.bond_forces(state.bonds, p, still, config.dim, state.step,
+                                           config.bond_section)
     else:
         bonds, fb, tb = state.bonds, None, None
         fb0, tb0 = None, None
@@ -373,12 +376,12 @@ def energy_step(state: State, params: Params, config: Config, ledger: Ledger,
     c_n, c_t = contact_energies(fam["contacts"], walls_new, p, params, config)
     bonds_new = fam["bonds"]
     if bonds_new.i.shape[0] > 0:
-        parts = bond_energies(bonds_new, p, params, config.dim)
+        parts = bond_energies(bonds_new, p, params, config.dim, config.bond_section)
         b_n, b_s, b_b, b_t = [jnp.sum(x) for x in parts]
         old = state.bonds
         new_break = bonds_new.valid & bonds_new.broken & ~old.broken
         new_lost = bonds_new.valid & bonds_new.moment_lost & ~old.moment_lost & ~new_break
-        _, _, old_b, old_t = bond_energies(old, p, params, config.dim)
+        _, _, old_b, old_t = bond_energies(old, p, params, config.dim, config.bond_section)
         released = (jnp.sum(jnp.where(new_break, parts[0] + parts[1] + parts[2] + parts[3], 0.0))
                     + jnp.sum(jnp.where(new_lost, old_b + old_t, 0.0)))
     else:
@@ -478,6 +481,44 @@ def run(state: State, params: Params, config: Config, n_steps: int, record_every
                            f"{np.asarray(new_state.first_bad_step)}")
     hist = {k: np.asarray(v) for k, v in hist.items()}   # batched: (B, n_records) already
     return (new_state, hist, ledger) if return_ledger else (new_state, hist)
+
+
+def lab_run(setup, params: Params | None = None):
+    """The ledger of a whole lab test (a :class:`jdem.lab.Setup`, unbatched):
+    the same record block as :func:`jdem.lab.curve` / :func:`jdem.lab.run` (the
+    record's loading, then ``record_every`` steps with the test's boundary), with
+    every step tracked.  One jitted call; returns ``(state, history)`` as
+    :func:`run` does (the ledger per record)."""
+    if setup.plan.batched:
+        raise InputError("energy.lab_run takes an unbatched set-up (one member)")
+    params = setup.params if params is None else params
+    state, hist = _compiled_lab(setup.plan)(setup.state, params, setup.frame)
+    if bool(neighbors.overflowed(state.contacts, setup.plan.config)):
+        raise RuntimeError("energy.lab_run: the neighbour list overflowed; grow it "
+                           "(jdem.lab.grow) and run again")
+    if int(state.first_bad_step) >= 0:
+        raise RuntimeError(f"energy.lab_run: the divergence guard tripped at step "
+                           f"{int(state.first_bad_step)}")
+    return state, {k: np.asarray(v) for k, v in hist.items()}
+
+
+@functools.lru_cache(maxsize=4)
+def _compiled_lab(plan):
+    test = plan.test
+
+    def go(state, params, frame):
+        def block(carry, k):
+            s, led = carry
+            s = test.load(s, k, frame, plan)
+            s, led, _ = rollout(s, params, plan.config, 1, plan.record_every, led,
+                                (test.boundary, frame))
+            return (s, led), observe(led)
+
+        (state, _), hist = jax.lax.scan(block, (state, init(state)),
+                                        jnp.arange(plan.n_records))
+        return state, hist
+
+    return jax.jit(go)
 
 
 # ----------------------------------------------------------------------------- balance
