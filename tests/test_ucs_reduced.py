@@ -69,3 +69,36 @@ def test_reduced_study_breaks_are_counted_by_mode(study):
     assert len(fp["index"]) == hist["n_broken"][0, -1]
     assert set(np.unique(fp["mode"]).tolist()) == {1, 2}
     assert np.sum(fp["mode"] == 1) == hist["n_tension"][0, -1]
+
+
+# The seed's figures (002 §2.2, Fig 11) as pass bands.  The band is 3 standard
+# deviations of the packing scatter measured on four packings of this study
+# (experiments/ucs_seed_bands.py, experiments/results/ucs_seed_bands/): peak
+# stress 5.2 % (kappa 0) and 1.8 % (kappa 2.4 %), critical strain 3.8 % / 10.1 %.
+SEED_PEAK = {0.0: 6.54e6, 2.4e-2: 20.1e6}
+SEED_CRITICAL_STRAIN = {0.0: 232e-6, 2.4e-2: 861e-6}
+PEAK_SCATTER = {0.0: 0.052, 2.4e-2: 0.018}
+STRAIN_SCATTER = {0.0: 0.038, 2.4e-2: 0.101}
+
+
+def test_reduced_study_peak_at_kappa_2_4_percent_is_the_seeds(study):
+    """kappa = 2.4 %: the peak stress is the seed's 20.1 MPa within 3 x 1.8 %
+    (measured: 19.87 MPa, -1.1 %; four packings 19.88 +- 0.37 MPa)."""
+    _, _, _, s = study
+    k = KAPPAS.index(2.4e-2)
+    assert abs(s["peak_stress"][k] / SEED_PEAK[2.4e-2] - 1) < 3 * PEAK_SCATTER[2.4e-2]
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "not met (experiments/results/ucs_seed_bands/): at kappa = 0 the peak is 14.4 +- 0.75 MPa "
+    "over four packings (this packing 12.9) against the seed's 6.54 MPa (+119 %), at a critical "
+    "strain of 522e-6 against 232e-6, with 13 % of the bonds broken at the peak against 1.5 %; "
+    "at kappa = 2.4 % the critical strain is 1.10e-3 against 861e-6 (+28 %, this packing "
+    "+33 %, outside 3 x 10.1 %).  The peak at kappa = 2.4 % matches (the test above)."))
+def test_reduced_study_brittle_peak_and_critical_strains_are_the_seeds(study):
+    _, _, _, s = study
+    for kappa in (0.0, 2.4e-2):
+        k = KAPPAS.index(kappa)
+        assert abs(s["peak_stress"][k] / SEED_PEAK[kappa] - 1) < 3 * PEAK_SCATTER[kappa]
+        assert abs(s["critical_strain"][k] / SEED_CRITICAL_STRAIN[kappa] - 1) \
+            < 3 * STRAIN_SCATTER[kappa]
