@@ -1,0 +1,213 @@
+#!/usr/bin/env python
+"""Mutation testing of the physics modules: does the fast test suite notice a
+wrong operator, comparison or sign?
+
+    python experiments/mutation.py                       # 6 mutants per module
+    python experiments/mutation.py --per-module 20 --modules bond contact
+    python experiments/mutation.py --list                # the mutants, not run
+
+For each module, every candidate mutation site is collected from its syntax
+tree: an arithmetic operator swapped (+ <-> -, * <-> /), a comparison flipped
+(< <-> <=, > <-> >=, == <-> !=), a unary minus dropped, ``jnp.minimum`` <->
+``jnp.maximum``.  ``--per-module`` of them are drawn at random (``--seed``),
+and each is written into a scratch copy of the package (``--work``, a git
+worktree of HEAD) and the module's unit-test files are run there (``pytest -x``,
+one process).  A mutant is *killed* when a test fails (or the run errors or
+times out), *survived* otherwise.  The original sources are never touched.
+
+Writes ``experiments/results/mutation/mutation.md`` (score per module, each
+mutant with its line and outcome) and ``mutation.json``.  Slow (about a minute
+per mutant on 2 cores, mostly compilation): a study run on request, not part of
+the test suite.
+"""
+from __future__ import annotations
+
+import argparse
+import ast
+import datetime
+import json
+import pathlib
+import random
+import shutil
+import subprocess
+import sys
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+OUT = ROOT / "experiments" / "results" / "mutation"
+
+#: module -> the unit-test files that should catch its mutants
+TESTS = {
+    "bond": ["tests/test_bond_unit.py", "tests/test_bond_unequal.py", "tests/test_bond_section.py"],
+    "contact": ["tests/test_contact_laws.py", "tests/test_contact_spin.py"],
+    "damping": ["tests/test_damping_timestep.py"],
+    "timestep": ["tests/test_damping_timestep.py", "tests/test_input_errors.py"],
+    "kinematics": ["tests/test_contact_spin.py", "tests/test_bond_unequal.py"],
+    "walls": ["tests/test_contact_laws.py", "tests/test_contact_spin.py"],
+    "neighbors": ["tests/test_neighbors.py", "tests/test_history_reorder.py"],
+    "integrate": ["tests/test_engine.py", "tests/test_guard.py"],
+}
+
+_BINOPS = {ast.Add: ast.Sub, ast.Sub: ast.Add, ast.Mult: ast.Div, ast.Div: ast.Mult}
+_CMPS = {ast.Lt: ast.LtE, ast.LtE: ast.Lt, ast.Gt: ast.GtE, ast.GtE: ast.Gt, ast.Eq: ast.NotEq,
+         ast.NotEq: ast.Eq}
+_CALLS = {"minimum": "maximum", "maximum": "minimum"}
+
+
+def _docstring_lines(tree) -> set:
+    lines = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.FunctionDef, ast.ClassDef)) and node.body:
+            first = node.body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant):
+                lines.update(range(first.lineno, first.end_lineno + 1))
+    return lines
+
+
+def sites(source: str) -> list:
+    """Every mutation site: (kind, line, col, description)."""
+    tree = ast.parse(source)
+    skip = _docstring_lines(tree)
+    out = []
+    for node in ast.walk(tree):
+        line = getattr(node, "lineno", None)
+        if line is None or line in skip:
+            continue
+        if isinstance(node, ast.BinOp) and type(node.op) in _BINOPS:
+            out.append(("binop", line, node.col_offset,
+                        f"{type(node.op).__name__} -> {_BINOPS[type(node.op)].__name__}"))
+        elif isinstance(node, ast.Compare) and len(node.ops) == 1 and type(node.ops[0]) in _CMPS:
+            out.append(("compare", line, node.col_offset,
+                        f"{type(node.ops[0]).__name__} -> {_CMPS[type(node.ops[0])].__name__}"))
+        elif isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub):
+            out.append(("neg", line, node.col_offset, "drop unary minus"))
+        elif isinstance(node, ast.Attribute) and node.attr in _CALLS:
+            out.append(("call", line, node.col_offset, f"{node.attr} -> {_CALLS[node.attr]}"))
+    return sorted(out, key=lambda s: (s[1], s[2], s[0]))
+
+
+class _Mutate(ast.NodeTransformer):
+    def __init__(self, site):
+        self.kind, self.line, self.col, _ = site
+        self.done = False
+
+    def _hit(self, node):
+        return (not self.done and getattr(node, "lineno", None) == self.line
+                and node.col_offset == self.col)
+
+    def visit_BinOp(self, node):
+        if self.kind == "binop" and self._hit(node) and type(node.op) in _BINOPS:
+            node.op, self.done = _BINOPS[type(node.op)](), True
+        return self.generic_visit(node)
+
+    def visit_Compare(self, node):
+        if self.kind == "compare" and self._hit(node):
+            node.ops, self.done = [_CMPS[type(node.ops[0])]()], True
+        return self.generic_visit(node)
+
+    def visit_UnaryOp(self, node):
+        if self.kind == "neg" and self._hit(node) and isinstance(node.op, ast.USub):
+            self.done = True
+            return self.generic_visit(node.operand)
+        return self.generic_visit(node)
+
+    def visit_Attribute(self, node):
+        if self.kind == "call" and self._hit(node) and node.attr in _CALLS:
+            node.attr, self.done = _CALLS[node.attr], True
+        return self.generic_visit(node)
+
+
+def mutate(source: str, site) -> str:
+    tree = ast.parse(source)
+    m = _Mutate(site)
+    tree = m.visit(tree)
+    if not m.done:
+        raise RuntimeError(f"site not found: {site}")
+    return ast.unparse(ast.fix_missing_locations(tree))
+
+
+def _worktree(work: pathlib.Path):
+    if work.exists():
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(work)],
+                       capture_output=True)
+        shutil.rmtree(work, ignore_errors=True)
+    subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(work), "HEAD"],
+                   check=True, capture_output=True)
+
+
+def run_tests(work: pathlib.Path, files, timeout) -> tuple[str, float]:
+    env = dict(__import__("os").environ, PYTHONPATH=str(work), JAX_PLATFORMS="cpu")
+    t0 = time.time()
+    try:
+        r = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-o", "addopts=",
+                            "-m", "not slow", "-p", "no:cacheprovider", *files], cwd=work,
+                           env=env, capture_output=True, text=True, timeout=timeout)
+        outcome = "survived" if r.returncode == 0 else "killed"
+    except subprocess.TimeoutExpired:
+        outcome = "killed (timeout)"
+    return outcome, time.time() - t0
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--modules", nargs="+", default=list(TESTS))
+    ap.add_argument("--per-module", type=int, default=6)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--timeout", type=float, default=600.0)
+    ap.add_argument("--work", type=pathlib.Path, default=pathlib.Path("/tmp/jdem-mutation"))
+    ap.add_argument("--list", action="store_true")
+    ap.add_argument("--out", type=pathlib.Path, default=OUT)
+    a = ap.parse_args(argv)
+    rng = random.Random(a.seed)
+    plan = {}
+    for mod in a.modules:
+        src = (ROOT / "jdem" / f"{mod}.py").read_text()
+        all_sites = sites(src)
+        plan[mod] = (len(all_sites), rng.sample(all_sites, min(a.per_module, len(all_sites))))
+    if a.list:
+        for mod, (n, chosen) in plan.items():
+            print(f"{mod}: {n} sites; " + "; ".join(f"line {s[1]}: {s[3]}" for s in chosen))
+        return
+    _worktree(a.work)
+    results = []
+    try:
+        for mod, (n, chosen) in plan.items():
+            target = a.work / "jdem" / f"{mod}.py"
+            original = target.read_text()
+            base, t_base = run_tests(a.work, TESTS[mod], a.timeout)
+            if base != "survived":
+                raise RuntimeError(f"the tests of {mod} fail without a mutant")
+            for site in chosen:
+                target.write_text(mutate(original, site))
+                outcome, t = run_tests(a.work, TESTS[mod], a.timeout)
+                target.write_text(original)
+                line = original.splitlines()[site[1] - 1].strip()
+                results.append(dict(module=mod, line=site[1], mutation=site[3], code=line,
+                                    outcome=outcome, seconds=round(t, 1)))
+                print(f"{mod}:{site[1]} {site[3]:24s} {outcome:16s} {t:5.0f} s  {line[:70]}",
+                      flush=True)
+    finally:
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(a.work)],
+                       capture_output=True)
+    a.out.mkdir(parents=True, exist_ok=True)
+    cmd = "python experiments/mutation.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    (a.out / "mutation.json").write_text(json.dumps(dict(
+        date=datetime.date.today().isoformat(), command=cmd, seed=a.seed,
+        sites={m: n for m, (n, _) in plan.items()}, results=results), indent=1))
+    md = ["# Mutation testing of the physics modules", "",
+          f"{datetime.date.today().isoformat()}, `{cmd}`, 2-core CPU. A mutant is killed when "
+          f"the module's unit tests (`pytest -x`, not slow) fail.", "",
+          "| module | sites | mutants run | killed | score |", "|---|---|---|---|---|"]
+    for mod, (n, _) in plan.items():
+        rows = [r for r in results if r["module"] == mod]
+        k = sum(r["outcome"].startswith("killed") for r in rows)
+        md.append(f"| {mod} | {n} | {len(rows)} | {k} | {100 * k / max(len(rows), 1):.0f} % |")
+    md += ["", "| module | line | mutation | outcome | code |", "|---|---|---|---|---|"]
+    md += [f"| {r['module']} | {r['line']} | {r['mutation']} | {r['outcome']} | "
+           f"`{r['code'][:80].replace('|', '/')}` |" for r in results]
+    (a.out / "mutation.md").write_text("\n".join(md) + "\n")
+    print("\n".join(md[:6 + len(plan)]))
+
+
+if __name__ == "__main__":
+    main()
