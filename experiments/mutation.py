@@ -88,7 +88,9 @@ def sites(source: str) -> list:
 
 class _Mutate(ast.NodeTransformer):
     def __init__(self, site):
-        self.kind, self.line, self.col, _ = site
+        super().__init__()
+        self.kind, self.line, self.col, desc = site
+        self.before = desc.split(" -> ")[0]     # nested nodes may share a position
         self.done = False
 
     def _hit(self, node):
@@ -96,12 +98,13 @@ class _Mutate(ast.NodeTransformer):
                 and node.col_offset == self.col)
 
     def visit_BinOp(self, node):
-        if self.kind == "binop" and self._hit(node) and type(node.op) in _BINOPS:
+        if self.kind == "binop" and self._hit(node) and type(node.op).__name__ == self.before:
             node.op, self.done = _BINOPS[type(node.op)](), True
         return self.generic_visit(node)
 
     def visit_Compare(self, node):
-        if self.kind == "compare" and self._hit(node):
+        if self.kind == "compare" and self._hit(node) and \
+                type(node.ops[0]).__name__ == self.before:
             node.ops, self.done = [_CMPS[type(node.ops[0])]()], True
         return self.generic_visit(node)
 
@@ -112,7 +115,7 @@ class _Mutate(ast.NodeTransformer):
         return self.generic_visit(node)
 
     def visit_Attribute(self, node):
-        if self.kind == "call" and self._hit(node) and node.attr in _CALLS:
+        if self.kind == "call" and self._hit(node) and node.attr == self.before:
             node.attr, self.done = _CALLS[node.attr], True
         return self.generic_visit(node)
 

@@ -134,7 +134,12 @@ def critical_timestep(state: State, params: Params, config: Config):
     visc = params.viscous_damping
     dt_tr = damped_limit(2.0 * k_tr / p.mass, 2.0 * c_tr / p.mass + visc)
     dt_rot = damped_limit(2.0 * k_rot / p.inertia, 2.0 * c_rot / p.inertia + visc)
-    dt = jnp.where(p.valid & ~jnp.all(p.fixed_vel, axis=-1), jnp.minimum(dt_tr, dt_rot), jnp.inf)
+    # a degree of freedom that is prescribed cannot go unstable: translation and
+    # rotation count apart (a particle held in place may still spin, and one whose
+    # spin is held may still move)
+    held_rot = p.fixed_rot if p.fixed_rot.ndim == 1 else jnp.all(p.fixed_rot, axis=-1)
+    dt = jnp.minimum(jnp.where(p.valid & ~jnp.all(p.fixed_vel, axis=-1), dt_tr, jnp.inf),
+                     jnp.where(p.valid & ~held_rot, dt_rot, jnp.inf))
     return jnp.min(dt, initial=jnp.inf)
 
 

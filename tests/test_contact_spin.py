@@ -610,3 +610,53 @@ def test_normal_dashpot_restitution(body, zeta):
         assert abs(m * vel[0, 0] + m2 * vel[1, 0] - (m - m2) * v) < 1e-12 * m2 * v
     expected = _restitution_no_tension(zeta)
     assert abs(e / expected - 1) < 1e-3
+
+
+def test_kinematics_array_forms_match_the_component_forms():
+    """scale, project_tangent and unit on (R, d) arrays equal their component-
+    tuple forms and NumPy; a zero vector has a zero unit vector, not NaN."""
+    from jdem import kinematics as km
+
+    rng = np.random.default_rng(3)
+    for d in (2, 3):
+        v = rng.normal(size=(7, d))
+        n = rng.normal(size=(7, d))
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        s = rng.normal(size=7)
+        np.testing.assert_allclose(np.asarray(km.scale(jnp.asarray(s), jnp.asarray(v))),
+                                   s[:, None] * v, rtol=1e-15)
+        tang = v - np.sum(v * n, axis=1, keepdims=True) * n
+        np.testing.assert_allclose(np.asarray(km.project_tangent(jnp.asarray(v), jnp.asarray(n))),
+                                   tang, rtol=1e-12, atol=1e-15)
+        comp = km.project_tangent(tuple(jnp.asarray(c) for c in v.T),
+                                  tuple(jnp.asarray(c) for c in n.T))
+        np.testing.assert_allclose(np.stack([np.asarray(c) for c in comp], axis=1), tang,
+                                   rtol=1e-12, atol=1e-15)
+        zero = jnp.zeros((2, d)).at[1].set(jnp.asarray(v[0]))
+        u, length = km.unit(zero)
+        assert np.all(np.asarray(u[0]) == 0) and np.all(np.isfinite(np.asarray(u)))
+        np.testing.assert_allclose(np.asarray(u[1]), v[0] / np.linalg.norm(v[0]), rtol=1e-15)
+
+
+def test_a_floor_moving_under_a_resting_disc_drags_it_at_mu_g_and_carries_its_weight():
+    """A disc at rest on a floor that moves at 0.2 m/s in x under gravity: the
+    floor's friction accelerates it at mu g in the floor's direction while it
+    slides (checked 4 ms after the start, well before rolling sets in), and the
+    force the disc exerts on the floor is its weight, pointing into the floor."""
+    r, mu, g = 0.01, 0.4, 9.81
+    p = jdem.make_particles(np.array([[0.0, r]]), np.array([r]), density=2500.0)
+    walls = jdem.make_walls([[0.0, 0.0]], [[0.0, 1.0]], n_particles=1, vel=[[0.2, 0.0]])
+    params = jdem.make_params(dim=2, kn=1e7, ks=1e7, friction=mu, dt=2e-6,
+                              gravity=[0.0, -g], contact_damping=0.7)
+    state, cfg = jdem.make_state(p, walls=walls)
+    m = float(p.mass[0])
+    # settle the normal contact first with the floor at rest, then start it
+    still = state._replace(walls=state.walls._replace(vel=jnp.zeros_like(state.walls.vel)))
+    settled = jdem.advance(still, params, cfg, 20_000)
+    np.testing.assert_allclose(np.asarray(settled.walls.force[0]), [0.0, -m * g], rtol=1e-6,
+                               atol=1e-9 * m * g)
+    moving = settled._replace(walls=settled.walls._replace(vel=state.walls.vel))
+    n = 2_000                                     # 4 ms, well inside the sliding phase
+    out = jdem.advance(moving, params, cfg, n)
+    vx = float(out.particles.vel[0, 0])
+    np.testing.assert_allclose(vx, mu * g * n * 2e-6, rtol=2e-2)

@@ -206,9 +206,8 @@ def test_single_mass_critical_step(dim, case):
     doubles the stiffness and dashpot sums and adds the shear spring and dashpot,
     so the translational row alone gives at least dt* / max(sqrt(2 (1 + K_s / K_n)),
     2 (1 + sqrt(K_s / K_n))) = 0.305 dt* (undamped: sqrt(K_n / (2 (K_n + K_s)))
-    = 0.60 dt*); it also counts the particle's rotation although it is held here
-    (2D: 0.57 dt*, 3D: 0.48 dt* undamped).  Asserted: [0.3 dt*, dt*], undamped
-    [0.45 dt*, dt*].
+    = 0.60 dt*); a held rotation is not counted.  Asserted: [0.3 dt*, dt*],
+    undamped [0.45 dt*, dt*].
     """
     state, config, u, m, kn, ks = _pair(dim)
     w2 = kn / m
@@ -241,6 +240,38 @@ def test_single_mass_critical_step(dim, case):
     crit = float(timestep.critical_timestep(state, _params(dim, 1e-6, **kw), config))
     assert crit <= limit
     assert crit >= (0.45 if g == 0 else 0.3) * limit
+
+
+@pytest.mark.parametrize("visc", [0.0, 1.0])
+def test_spinning_disc_on_a_bond_critical_step(visc):
+    """A disc held in place but free to spin, bonded to a held disc (2D, equal
+    radii): I theta'' = -(K_s R^2 + K_n I_b / A_c) theta - c I theta' (the shear
+    spring at the contact point R from the centre, the bending spring E I_b / L,
+    002 eq 4; c the viscous damping, here 0 or omega).  At 0.95 of the damped
+    limit dt* (as for the single mass above) the spin does not grow, at 1.05 it
+    does; ``critical_timestep`` counts the spin although the disc cannot move
+    (it used to skip a particle whose translation is held) and stays in
+    [0.6, 0.75] dt* undamped (its Gershgorin factor 2 on w2 gives 1/sqrt(2)).
+    """
+    fixed_vel = np.ones((2, 2), bool)
+    parts = jdem.make_particles(np.array([[0.0, 0.0], [2 * R, 0.0]]), [R, R], density=RHO,
+                                fixed_vel=fixed_vel, fixed_rot=np.array([True, False]))
+    bonds = create_bonds(parts, 2, gap_tolerance=1e-9)
+    state, config = jdem.make_state(parts, bonds=bonds)
+    g = bond_geometry(state.bonds, state.particles, _params(2, 1e-6), 2)
+    k = float(g.ks[0]) * R ** 2 + float(g.kn[0] * g.I[0] / g.area[0])
+    inertia = float(parts.inertia[1])
+    w2 = k / inertia
+    kw = {"viscous_damping": visc * np.sqrt(w2)} if visc else {}
+    limit = _damped_limit(w2, kw.get("viscous_damping", 0.0))
+    for factor in (0.95, 1.05):
+        _, energy = _stability_run(state, _params(2, factor * limit, **kw), config,
+                                   np.zeros((2, 2)), np.array([0.0, TINY]))
+        assert (_growth(energy) < 10) if factor < 1 else (_growth(energy) > 1e6)
+    crit = float(timestep.critical_timestep(state, _params(2, 1e-6, **kw), config))
+    assert crit <= limit
+    if not visc:
+        assert 0.6 * limit <= crit <= 0.75 * limit
 
 
 def _chain(n):
