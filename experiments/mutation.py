@@ -139,7 +139,12 @@ def _worktree(work: pathlib.Path):
 
 
 def run_tests(work: pathlib.Path, files, timeout) -> tuple[str, float]:
-    env = dict(__import__("os").environ, PYTHONPATH=str(work), JAX_PLATFORMS="cpu")
+    # no bytecode: two mutants of a file can have the same size and modification
+    # second, and Python would then run the previous mutant's cached bytecode
+    for cache in (work / "jdem").rglob("__pycache__"):
+        shutil.rmtree(cache, ignore_errors=True)
+    env = dict(__import__("os").environ, PYTHONPATH=str(work), JAX_PLATFORMS="cpu",
+               PYTHONDONTWRITEBYTECODE="1")
     t0 = time.time()
     try:
         r = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-o", "addopts=",
