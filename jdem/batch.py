@@ -4,7 +4,8 @@ One place for the four things every batched caller needs:
 
 * :func:`is_batched` -- whether ``params`` carry a member axis;
 * :func:`broadcast_batch` -- repeat a pytree along a new member axis;
-* :func:`member` -- take member ``b`` of a batched pytree or history dict;
+* :func:`member` -- take member ``b`` of a batched pytree or history dict
+  (:func:`put_member` puts one back);
 * :func:`stack_states` -- put the states of *different* specimens (an ensemble of
   packings) on one member axis, padded to common capacities, with one search
   grid that covers them all.
@@ -35,6 +36,11 @@ def member(tree, b: int):
     if isinstance(tree, dict):
         return {k: np.asarray(v)[b] for k, v in tree.items()}
     return jax.tree_util.tree_map(lambda a: a[b], tree)
+
+
+def put_member(tree, b: int, value):
+    """``tree`` (batched) with member ``b`` replaced by the unbatched ``value``."""
+    return jax.tree_util.tree_map(lambda a, v: a.at[b].set(v), tree, value)
 
 
 def _pad_rows(a, n, fill=0):

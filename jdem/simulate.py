@@ -368,11 +368,15 @@ def run(state: State, params: Params, config: Config, n_steps: int, *, record_ev
 
 
 def _member(tree, b):
-    return jax.tree_util.tree_map(lambda a: a[b], tree)
+    from jdem.batch import member   # jdem.batch imports this module
+
+    return member(tree, b)
 
 
 def _put_member(tree, b, value):
-    return jax.tree_util.tree_map(lambda a, v: a.at[b].set(v), tree, value)
+    from jdem.batch import put_member
+
+    return put_member(tree, b, value)
 
 
 def blank_member_records(hist, b, first_record):

@@ -42,7 +42,7 @@ import numpy as np
 from jdem import neighbors
 from jdem.lab import pattern, summary
 from jdem.lab.checkpoint import load_checkpoint, save_checkpoint
-from jdem.batch import broadcast_batch, is_batched, member
+from jdem.batch import broadcast_batch, is_batched, member, put_member
 from jdem.simulate import (MemberFailure, SimulationDiverged, advance, blank_member_records,
                            check_current_step, diagnose, inert, rollout)
 from jdem.state import Config, Params, State
@@ -323,8 +323,7 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
     nb = setup.n_members
     state, frame = _strong(setup.state), _strong(setup.frame)
     for f in failures:
-        state = jax.tree_util.tree_map(lambda a, v: a.at[f.member].set(v), state,
-                                       inert(f.last_good_state))
+        state = put_member(state, f.member, inert(f.last_good_state))
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -409,8 +408,7 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
             save_checkpoint(checkpoint, setup.replace(state=state), params, parts, k0,
                             status=status)
     for f in failures:     # a set-aside member ends in its last good state
-        state = jax.tree_util.tree_map(lambda a, v: a.at[f.member].set(v), state,
-                                       f.last_good_state)
+        state = put_member(state, f.member, f.last_good_state)
     setup = setup.replace(state=state)
     history = _host_history(parts, setup)
     history.update(pattern.bond_record(state, "end_"))
@@ -489,7 +487,7 @@ def _set_aside(setup: Setup, params, k0, bad, failures, raw, parts, new_state):
                                      f"every member failed; member {f0.member} first: "
                                      f"{f0.reason}")
         blank_member_records(raw, b, (first - start) // plan.record_every)
-        new_state = jax.tree_util.tree_map(lambda a, v: a.at[b].set(v), new_state, inert(good))
+        new_state = put_member(new_state, b, inert(good))
     return new_state
 
 
