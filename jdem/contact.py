@@ -25,6 +25,7 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
+from jdem import precision
 from jdem.validate import InputError
 from jdem.kinematics import (components, computed_once, cross_r_f, dot, floored_norm,
                              project_tangent, relative_velocity, rotate_into_plane, safe_norm,
@@ -143,7 +144,10 @@ def _pair_geometry_components(contacts: Contacts, particles: Particles) -> PairG
     """:func:`pair_geometry` with ``branch`` and ``normal`` as component tuples."""
     p = particles
     i, j = contacts.i, contacts.j
-    branch = tuple(x[j] - x[i] for x in components(p.pos))
+    # x_j - x_i from the compensated positions (jdem.precision): the overlap of
+    # two 5 cm coordinates to float32's relative precision of the overlap itself
+    branch = tuple(precision.difference(x[j], xl[j], x[i], xl[i])
+                   for x, xl in zip(components(p.pos), components(p.pos_lo)))
     dist = safe_norm(branch)
     inv = jnp.where(dist > 0, dist, 1.0)
     normal = tuple(b / inv for b in branch)

@@ -10,7 +10,8 @@ The force–displacement cycle of 000 eq 2-4..2-17:
 3. damping (000 §3.2);
 4. velocities from the central-difference update v += F/m dt (000 eq 2-15),
    except for prescribed degrees of freedom, which keep their velocity;
-5. positions x += v dt (000 eq 2-16, 2-17); walls move with their velocity.
+5. positions x += v dt (000 eq 2-16, 2-17); walls move with their velocity
+   (both summed with compensation, :mod:`jdem.precision`).
 
 ``step`` works on one system; ``step_batched`` on a leading batch axis of state
 and params, refreshing the neighbour lists of the whole batch together so that
@@ -22,7 +23,7 @@ import jax
 import jax.numpy as jnp
 
 from jdem import contact, damping, neighbors, walls as walls_mod
-from jdem import bond
+from jdem import bond, precision
 from jdem.state import Config, Params, State
 
 
@@ -81,8 +82,9 @@ def physics_step(state: State, params: Params, config: Config, boundary=None) ->
     free_w = ~p.fixed_rot & _expand(p.valid, p.angvel)
     vel = jnp.where(free_v, p.vel + force / p.mass[:, None] * dt, p.vel)  # 000 eq 2-15
     angvel = jnp.where(free_w, p.angvel + torque / _expand(p.inertia, torque) * dt, p.angvel)
-    pos = p.pos + jnp.where(_expand(p.valid, vel), vel, 0.0) * dt  # 000 eq 2-16, 2-17
-    particles = p._replace(pos=pos, vel=vel, angvel=angvel)
+    # 000 eq 2-16, 2-17, summed with compensation (jdem.precision)
+    pos, pos_lo = precision.add(p.pos, p.pos_lo, jnp.where(_expand(p.valid, vel), vel, 0.0) * dt)
+    particles = p._replace(pos=pos, pos_lo=pos_lo, vel=vel, angvel=angvel)
     ok = healthy(particles, dt, depth)
     bad = jnp.where((state.first_bad_step < 0) & ~ok, state.step, state.first_bad_step)
     return state._replace(particles=particles, walls=walls_mod.advance(state.walls, dt),

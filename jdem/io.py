@@ -302,10 +302,18 @@ def _class_of(group: h5py.Group, default: str, where: str, path) -> type:
     return cls
 
 
+_LOW_PARTS = {"pos_lo": "pos", "point_lo": "point"}   # low part -> its high part
+
+
 def _read_tree(group: h5py.Group, cls: type, where: str, path, allow_downcast=False):
     values = []
     for name in cls._fields:
         sub = f"{where}/{name}"
+        if name not in group and name in _LOW_PARTS and _LOW_PARTS[name] in group:
+            # written before positions were compensated pairs (jdem.precision):
+            # the stored coordinate is the whole position
+            values.append(np.zeros_like(_read_array(group[_LOW_PARTS[name]], allow_downcast)))
+            continue
         if name not in group:
             raise CorruptFileError(f"{sub} missing in {path}")
         node = group[name]

@@ -12,7 +12,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from jdem import contact
-from jdem import damping, integrate
+from jdem import damping, integrate, precision
 from jdem.kinematics import dot, unit
 from jdem.walls import normal_stress, wall_law
 from jdem.state import Config, Params, State
@@ -234,7 +234,7 @@ def averaged_strain(reference_pos, state: State, window=None):
     weight = p.valid if window is None else in_window(p._replace(pos=ref), window)
     w = weight.astype(p.pos.dtype)[:, None]
     n = jnp.maximum(jnp.sum(w), 1.0)
-    u = p.pos - ref
+    u = precision.difference(p.pos, p.pos_lo, ref, 0.0)   # compensated (jdem.precision)
     x = ref - jnp.sum(w * ref, axis=0) / n
     u = u - jnp.sum(w * u, axis=0) / n
     xx = jnp.sum(_outer(w * x, x), axis=0)

@@ -44,7 +44,9 @@ def rot_shape(dim: int) -> tuple[int, ...]:
 class Particles(NamedTuple):
     """Discs (2D) or spheres (3D); capacity ``N`` rows, of which ``valid`` are real.
 
-    pos          (N, d)  centre position [m]
+    pos          (N, d)  centre position [m], to the nearest float of the working dtype
+    pos_lo       (N, d)  the rest of the position [m]: the centre is pos + pos_lo
+                         (compensated summation, :mod:`jdem.precision`)
     vel          (N, d)  translational velocity [m/s] (at the half step, leapfrog)
     angvel       (N,) or (N, 3)  angular velocity [rad/s]
     radius       (N,)    [m]
@@ -60,6 +62,7 @@ class Particles(NamedTuple):
     """
 
     pos: Array
+    pos_lo: Array
     vel: Array
     angvel: Array
     radius: Array
@@ -105,7 +108,8 @@ class Contacts(NamedTuple):
 class Walls(NamedTuple):
     """Rigid infinite planes; capacity ``W``.
 
-    point        (W, d)  a point on the plane [m]
+    point        (W, d)  a point on the plane [m], to the nearest float
+    point_lo     (W, d)  the rest of the point [m] (point + point_lo; :mod:`jdem.precision`)
     normal       (W, d)  unit normal pointing into the particle domain
     vel          (W, d)  wall velocity [m/s]; servo walls overwrite its normal part
     material     (W,)    int index into the per-material arrays of ``Params``
@@ -121,6 +125,7 @@ class Walls(NamedTuple):
     """
 
     point: Array
+    point_lo: Array
     normal: Array
     vel: Array
     material: Array
@@ -366,6 +371,7 @@ def make_particles(pos, radius, *, density=2500.0, vel=None, angvel=None, materi
     # padding rows: radius 0 (never touch anything), mass 1 (divisions stay finite)
     parts = Particles(
         pos=pad(pos, 0.0, (dim,), fl),
+        pos_lo=pad(None, 0.0, (dim,), fl),
         vel=pad(vel, 0.0, (dim,), fl),
         angvel=pad(angvel, 0.0, rs, fl),
         radius=pad(radius, 0.0, (), fl),
@@ -403,6 +409,7 @@ def make_walls(points, normals, *, dim=None, n_particles, vel=None, material=Non
     full = lambda v, dflt, dt: np.broadcast_to(np.asarray(dflt if v is None else v, dtype=dt), (w,)).copy()
     walls = Walls(
         point=points.astype(fl),
+        point_lo=np.zeros((w, d), fl),
         normal=(normals / norm[:, None]).astype(fl),
         vel=(np.zeros((w, d)) if vel is None else np.asarray(vel, dtype=np.float64).reshape(w, d)).astype(fl),
         material=full(material, 0, np.int32),
@@ -423,7 +430,8 @@ def no_walls(dim: int, n_particles: int, dtype=None) -> Walls:
     """An empty wall set (capacity 0)."""
     dtype = dtype or jnp.zeros(()).dtype
     z = lambda *s, dt=dtype: jnp.zeros(s, dt)
-    return Walls(point=z(0, dim), normal=z(0, dim), vel=z(0, dim), material=z(0, dt=jnp.int32),
+    return Walls(point=z(0, dim), point_lo=z(0, dim), normal=z(0, dim), vel=z(0, dim),
+                 material=z(0, dt=jnp.int32),
                  servo=z(0, dt=bool), target_stress=z(0), area=z(0), servo_gain=z(0),
                  servo_vmax=z(0), force=z(0, dim), n_contacts=z(0, dt=jnp.int32),
                  shear=z(0, n_particles, dim), valid=z(0, dt=bool))

@@ -21,6 +21,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from jdem import precision
 from jdem.contact import dashpot, normal_law, pair_friction, tangential_update
 from jdem.kinematics import components, computed_once, cross_r_f, cross_w_r, dot, scale
 from jdem.state import Config, Params, Particles, Walls
@@ -33,7 +34,9 @@ def wall_law(walls: Walls, particles: Particles, params: Params, config: Config)
     where not touching.  For Hertz the wall acts as a sphere of infinite radius.
     """
     p = particles
-    dist = dot(p.pos[None] - walls.point[:, None, :], walls.normal[:, None, :])  # (W, N)
+    gap = precision.difference(p.pos[None], p.pos_lo[None], walls.point[:, None, :],
+                               walls.point_lo[:, None, :])
+    dist = dot(gap, walls.normal[:, None, :])  # (W, N)
     overlap = p.radius[None] - dist
     touching = walls.valid[:, None] & p.valid[None] & (overlap > 0)
     overlap = jnp.where(touching, overlap, 0.0)
@@ -109,7 +112,8 @@ def _servo(walls: Walls, kn_sum, params: Params) -> Walls:
 
 def advance(walls: Walls, dt) -> Walls:
     """Move every wall by its velocity over one step."""
-    return walls._replace(point=walls.point + walls.vel * dt)
+    point, point_lo = precision.add(walls.point, walls.point_lo, walls.vel * dt)
+    return walls._replace(point=point, point_lo=point_lo)
 
 
 def crossed_pair(walls: Walls):

@@ -62,7 +62,7 @@ def bounding_circles(blocks: Blocks) -> Particles:
     b, f = blocks.pos.shape[0], blocks.pos.dtype
     z1 = jnp.zeros((b,), f)
     z2 = jnp.zeros((b, 2), f)
-    return Particles(pos=blocks.pos, vel=blocks.vel, angvel=blocks.angvel, radius=blocks.radius,
+    return Particles(pos=blocks.pos, pos_lo=z2, vel=blocks.vel, angvel=blocks.angvel, radius=blocks.radius,
                      mass=blocks.mass, gravity_mass=blocks.mass, inertia=blocks.inertia,
                      material=jnp.zeros((b,), jnp.int32), fixed_vel=jnp.zeros((b, 2), bool),
                      fixed_rot=jnp.zeros((b,), bool), ext_force=z2, ext_torque=z1,

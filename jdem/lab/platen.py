@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jdem import bond as bond_mod
-from jdem import measure, timestep
+from jdem import measure, precision, timestep
 from jdem.batch import broadcast_batch, is_batched, member, stack_states
 from jdem.lab import damping as damping_mod
 from jdem.lab.core import LabTest, Plan, Setup, n_records_for, ramp
@@ -66,6 +66,11 @@ class PlatenFrame(NamedTuple):
     background  background damping coefficient [1/s] (:mod:`jdem.lab.damping`)
     gauge       (N, d-1) weights of the lateral gauge particles (:func:`lateral_gauges`)
     gauge_w0    (d-1,) initial gauge widths [m]
+    wall0       (W, d) wall points at set-up [m]: the records hold each wall's
+                displacement from here (:mod:`jdem.precision`: a float32 displacement
+                keeps sub-nanometre steps that a float32 coordinate rounds away)
+    pos0        (N, d-1) lateral particle coordinates at set-up [m] (the gauges'
+                reference, likewise)
     """
 
     h0: jnp.ndarray
@@ -76,6 +81,8 @@ class PlatenFrame(NamedTuple):
     background: jnp.ndarray
     gauge: jnp.ndarray
     gauge_w0: jnp.ndarray
+    wall0: jnp.ndarray
+    pos0: jnp.ndarray
 
 
 # ----------------------------------------------------------------------------- measurement
@@ -137,18 +144,21 @@ def lateral_gauges(particles, dim):
     return gauge, w0
 
 
-def gauge_widths(particles, gauge):
-    """(d-1,) gauge widths [m] at the particles' current positions (traced)."""
+def gauge_change(particles, gauge, pos0):
+    """(d-1,) change of the gauge widths [m] since set-up (traced): the gauge
+    weights applied to the particles' lateral displacements from ``pos0``
+    (N, d-1), summed with compensation (:mod:`jdem.precision`)."""
     d1 = gauge.shape[-1]
-    return (jnp.sum(gauge * particles.pos[:, :d1], axis=0)
-            + jnp.sum(jnp.abs(gauge) * particles.radius[:, None], axis=0))
+    p = particles
+    disp = precision.difference(p.pos[:, :d1], p.pos_lo[:, :d1], pos0, 0.0)
+    return jnp.sum(gauge * disp, axis=0)
 
 
 def observe(state, params, config, frame):
-    """One record of a platen test: ``step``; per wall (W,): ``wall_pos``
-    (coordinate along its normal axis), ``wall_force`` (compressive normal force
-    [N]) and ``wall_area``; ``width`` (:func:`slice_widths`), ``gauge_width``
-    (:func:`gauge_widths`); ``stress_sum``, the
+    """One record of a platen test: ``step``; per wall (W,): ``wall_disp``
+    (displacement along its normal axis since set-up [m]), ``wall_force``
+    (compressive normal force [N]) and ``wall_area``; ``width``
+    (:func:`slice_widths`), ``gauge_change`` (:func:`gauge_change`); ``stress_sum``, the
     averaged-stress sum of :func:`jdem.measure.averaged_stress` with volume 1;
     bond counts; bond, contact and kinetic energies."""
     w = state.walls
@@ -156,11 +166,12 @@ def observe(state, params, config, frame):
     axis_of = jnp.argmax(jnp.abs(w.normal), axis=-1)
     return dict(
         step=state.step,
-        wall_pos=jnp.take_along_axis(w.point, axis_of[:, None], axis=-1)[:, 0],
+        wall_disp=jnp.take_along_axis(precision.difference(w.point, w.point_lo, frame.wall0, 0.0),
+                                      axis_of[:, None], axis=-1)[:, 0],
         wall_force=-jnp.sum(w.force * w.normal, axis=-1),
         wall_area=w.area,
         width=slice_widths(state.particles, config.dim),
-        gauge_width=gauge_widths(state.particles, frame.gauge),
+        gauge_change=gauge_change(state.particles, frame.gauge, frame.pos0),
         stress_sum=measure.averaged_stress(state, params, config, 1.0),
         fracture_degree=stats["fracture_degree"],
         n_broken=stats["n_broken"], n_tension=stats["n_tension"], n_shear=stats["n_shear"],
@@ -200,36 +211,41 @@ def derive(raw: dict, frame: PlatenFrame, plan: Plan, volume_of=None) -> dict:
     dim = plan.config.dim
     n_lat = int(plan.option("n_lateral", 0))
     pre = plan.preload_records
-    pos = raw["wall_pos"]
+    # strains from the walls' displacements, not from differences of their
+    # coordinates (which float32 holds only to ~4 nm at 5 cm; jdem.precision)
+    disp = raw["wall_disp"]
     h0, w0 = frame.h0, frame.w0
-    if pre:
-        h0 = pos[pre - 1, ..., 1] - pos[pre - 1, ..., 0]
-        w0 = jnp.stack([pos[pre - 1, ..., 3 + 2 * a] - pos[pre - 1, ..., 2 + 2 * a]
+    if pre:   # the loading starts from the end of the preload
+        ref = disp[pre - 1]
+        h0 = h0 + (ref[..., 1] - ref[..., 0])
+        w0 = jnp.stack([frame.w0[..., a] + (ref[..., 3 + 2 * a] - ref[..., 2 + 2 * a])
                         for a in range(dim - 1)], axis=-1)
         raw = {k: v[pre:] for k, v in raw.items()}
-        pos = raw["wall_pos"]
+        disp = raw["wall_disp"] - ref[None]
     h0 = jax.lax.stop_gradient(h0)
     h = {"step": raw["step"]}
-    height = pos[..., 1] - pos[..., 0]
+    shortening = disp[..., 0] - disp[..., 1]
+    height = h0 - shortening
     h["height"] = height
-    h["axial_strain"] = jax.lax.stop_gradient((h0 - height) / h0)
+    h["axial_strain"] = jax.lax.stop_gradient(shortening / h0)
     force = raw["wall_force"]
     h["axial_stress"] = force[..., 1] / frame.area
     h["bottom_stress"] = force[..., 0] / frame.area
+    w0 = jax.lax.stop_gradient(w0)
     if n_lat:
-        width = jnp.stack([pos[..., 3 + 2 * a] - pos[..., 2 + 2 * a] for a in range(dim - 1)],
-                          axis=-1)
+        narrowing = jnp.stack([disp[..., 2 + 2 * a] - disp[..., 3 + 2 * a]
+                               for a in range(dim - 1)], axis=-1)
+        width = w0[None] - narrowing
         lat = force[..., 2:2 + n_lat] / raw["wall_area"][..., 2:2 + n_lat]
         h["lateral_stress"] = jnp.mean(lat, axis=-1)
     else:
         width = raw["width"]
-    w0 = jax.lax.stop_gradient(w0)
     h["width"] = width
     if n_lat:
-        lat_strain = (w0[None] - width) / w0[None]
+        lat_strain = narrowing / w0[None]
     else:
         g0 = jax.lax.stop_gradient(frame.gauge_w0)[None]
-        lat_strain = (g0 - raw["gauge_width"]) / g0
+        lat_strain = -raw["gauge_change"] / g0
     h["lateral_strain"] = jnp.mean(lat_strain, axis=-1)
     h["volumetric_strain"] = h["axial_strain"] + jnp.sum(lat_strain, axis=-1)
     volume = (volume_of or box_volume)(height, width, frame)
@@ -487,7 +503,9 @@ def platen_setup(test: LabTest, specimens, params, *, max_strain=3e-3, loading_r
             diameter=np.asarray(diam), velocity=vel,
             background=np.asarray(damping_mod.background_coefficient(
                 damping, youngs, rhos[k], h_box)),
-            gauge=gauge, gauge_w0=gauge_w0))
+            gauge=gauge, gauge_w0=gauge_w0, wall0=np.asarray(state.walls.point, np.float64),
+            pos0=np.pad(np.asarray(particles.pos, np.float64)[:, :dim - 1],
+                        ((0, n_cap - int(particles.pos.shape[0])), (0, 0)))))
     dtype = jnp.asarray(params.dt).dtype
     n_lat = built[0][6]
     if len(members) > 1:

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jdem import bond as bond_mod
-from jdem import integrate, measure, timestep
+from jdem import integrate, measure, precision, timestep
 from jdem.batch import broadcast_batch, is_batched, member
 from jdem.lab import damping as damping_mod
 from jdem.lab.core import LabTest, Plan, Setup, n_records_for, ramp
@@ -38,7 +38,9 @@ from jdem.validate import InputError
 class GripFrame(NamedTuple):
     """h0 grip distance [m]; w0 (d-1,) lateral extents [m]; area [m^2]; ``top``,
     ``bottom`` (N,) grip masks; ``velocity`` () full speed of the top grip [m/s];
-    ``background`` [1/s] (:mod:`jdem.lab.damping`)."""
+    ``background`` [1/s] (:mod:`jdem.lab.damping`); ``z0`` (N,) axial particle
+    coordinates at set-up [m], from which the grips' displacements are measured
+    (:mod:`jdem.precision`)."""
 
     h0: jnp.ndarray
     w0: jnp.ndarray
@@ -47,30 +49,24 @@ class GripFrame(NamedTuple):
     bottom: jnp.ndarray
     velocity: jnp.ndarray
     background: jnp.ndarray
-
-
-def _grips(particles):
-    p = particles
-    grip = jnp.all(p.fixed_vel, axis=-1) & p.valid
-    z = p.pos[:, -1]
-    mid = jnp.sum(jnp.where(p.valid, z, 0.0)) / jnp.maximum(jnp.sum(p.valid), 1)
-    return grip & (z > mid), grip & (z <= mid)
+    z0: jnp.ndarray
 
 
 def _mean(x, mask):
     return jnp.sum(jnp.where(mask, x, 0.0)) / jnp.maximum(jnp.sum(mask), 1)
 
 
-def observe(state, params, config, frame=None):
-    """One record: grip positions, the reaction on the top grip, counts, energies
-    (``frame`` unused)."""
-    top, bottom = _grips(state.particles)
+def observe(state, params, config, frame):
+    """One record: the grips' mean axial displacements since set-up, the reaction
+    on the top grip, counts, energies."""
+    top, bottom = frame.top, frame.bottom
     _, force, _ = integrate.forces(state, params, config)
     ax = config.dim - 1
-    z = state.particles.pos[:, ax]
+    p = state.particles
+    u = precision.difference(p.pos[:, ax], p.pos_lo[:, ax], frame.z0, 0.0)
     stats = bond_mod.bond_stats(state.bonds)
     return dict(
-        step=state.step, top=_mean(z, top), bottom=_mean(z, bottom),
+        step=state.step, top_disp=_mean(u, top), bottom_disp=_mean(u, bottom),
         top_force=jnp.sum(jnp.where(top, force[:, ax], 0.0)),
         width=slice_widths(state.particles, config.dim),
         fracture_degree=stats["fracture_degree"], n_broken=stats["n_broken"],
@@ -85,9 +81,9 @@ def observe(state, params, config, frame=None):
 def derive(raw, frame: GripFrame, plan: Plan) -> dict:
     """History (module docstring); records on axis 0."""
     h = {"step": raw["step"]}
-    height = raw["top"] - raw["bottom"]
-    h["height"] = height
-    h["axial_strain"] = jax.lax.stop_gradient((height - frame.h0) / frame.h0)
+    extension = raw["top_disp"] - raw["bottom_disp"]
+    h["height"] = frame.h0 + extension
+    h["axial_strain"] = jax.lax.stop_gradient(extension / frame.h0)
     h["axial_stress"] = -raw["top_force"] / frame.area
     w0 = frame.w0[None]
     lat = (w0 - raw["width"]) / w0
@@ -190,7 +186,8 @@ def setup(specimen, params, *, max_strain=1e-3, loading_rate=None, damping=None,
         area=jnp.asarray(float(np.prod(widths)), dtype), top=jnp.asarray(top),
         bottom=jnp.asarray(bottom), velocity=jnp.asarray(speed, dtype),
         background=jnp.asarray(damping_mod.background_coefficient(damping, youngs, rho, h0),
-                               dtype))
+                               dtype),
+        z0=jnp.asarray(z, dtype))
     if batched:
         state = broadcast_batch(state, n_par)
         frame = broadcast_batch(frame, n_par)
