@@ -151,6 +151,17 @@ def create_bonds(particles: Particles, dim: int, *, gap_tolerance: float,
             pairs_j.append(b[keep])
     bi = idx[np.concatenate(pairs_i)] if n else np.zeros(0, np.int64)
     bj = idx[np.concatenate(pairs_j)] if n else np.zeros(0, np.int64)
+    return bonds_for_pairs(bi, bj, dim, capacity=capacity, dtype=particles.pos.dtype)
+
+
+def bonds_for_pairs(i, j, dim: int, *, capacity: int | None = None, dtype=None) -> Bonds:
+    """Fresh bonds for the pairs ``(i[k], j[k])`` (host integer arrays, i < j): rows
+    sorted by (i, j), every evolving field at zero, ``break_step`` at -1.
+    ``capacity`` (default: the number of pairs) pads with invalid rows; a capacity
+    below it raises ``ValueError``."""
+    bi, bj = np.asarray(i, np.int64), np.asarray(j, np.int64)
+    if bi.shape != bj.shape or bi.ndim != 1 or np.any(bi >= bj):
+        raise ValueError("bonds_for_pairs: i and j must be 1-D of one length with i < j")
     srt = np.lexsort((bj, bi))
     bi, bj = bi[srt], bj[srt]
     found = bi.size
@@ -158,7 +169,7 @@ def create_bonds(particles: Particles, dim: int, *, gap_tolerance: float,
     if capacity < found:
         raise ValueError(f"create_bonds: capacity {capacity} is smaller than the number of "
                          f"bonds found {found}")
-    bonds = empty_bonds(dim, capacity, dtype=particles.pos.dtype)
+    bonds = empty_bonds(dim, capacity, dtype=dtype)
     ii = np.zeros(capacity, np.int32)
     jj = np.zeros(capacity, np.int32)
     ok = np.zeros(capacity, bool)

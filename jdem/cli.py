@@ -24,7 +24,8 @@ override.
                 default, or "local"), local_damping (alpha of "local", 0.8 in
                 002 §2.1), stop_stress_ratio (stop once the stress fell below this
                 fraction of the peak; 0 = never), record_every (steps; 0 = about
-                200 records)
+                200 records), precision ("float32", the default, or "float64";
+                jdem.precision)
 """
 from __future__ import annotations
 
@@ -76,7 +77,7 @@ def calibration_demo(out, small=False):
     Levenberg-Marquardt with forward-mode Jacobians."""
     import jax
 
-    jax.config.update("jax_enable_x64", True)   # sub-nanometre platen steps need float64
+    jax.config.update("jax_enable_x64", True)   # set-ups built in float64, run in float32
     from jdem import calibrate, plot
 
     t0 = time.time()
@@ -107,7 +108,8 @@ UCS_DEFAULTS = {
     "material": dict(E=30e9, nu=0.22, T0=3e6, c0=3e6, phi_deg=30.0, kappa=3e-3,
                      density=2500.0, bond_section="circular"),
     "loading": dict(loading_rate=4e-6, platen_step=0.0, max_strain=3e-3, damping="smooth",
-                    local_damping=0.8, stop_stress_ratio=0.3, record_every=0),
+                    local_damping=0.8, stop_stress_ratio=0.3, record_every=0,
+                    precision="float32"),
 }
 UCS_SMALL = {
     "specimen": dict(width=0.01, height=0.02),
@@ -207,6 +209,9 @@ def ucs_settings(config_path=None, small=False, defaults=None) -> dict:
     _number("loading.local_damping", ld["local_damping"], lo=0, hi=1, hi_open=True)
     _number("loading.stop_stress_ratio", ld["stop_stress_ratio"], lo=0, hi=1, hi_open=True)
     _number("loading.record_every", ld["record_every"], lo=0, integer=True)
+    if ld["precision"] not in ("float32", "float64"):
+        raise InputError(f"loading.precision must be \"float32\" or \"float64\", got "
+                         f"{ld['precision']!r}")
     return cfg
 
 
@@ -247,7 +252,7 @@ def ucs(config=None, out="results/ucs", small=False, progress=True, animate=Fals
     import jax
     import numpy as np
 
-    # sub-nanometre platen steps on a 10 cm specimen are below float32 resolution
+    # the set-up is built in float64 and cast to loading.precision (jdem.precision)
     jax.config.update("jax_enable_x64", True)
     from jdem import io, lab, plot, specimen
     from jdem.materials import rock_params
@@ -272,7 +277,8 @@ def ucs(config=None, out="results/ucs", small=False, progress=True, animate=Fals
         dict(loading_rate=ld["loading_rate"])
     setup = lab.UCS.setup(spec, params, max_strain=ld["max_strain"], damping=damping,
                           record_every=ld["record_every"] or None,
-                          bond_section=mat["bond_section"], **rate)
+                          bond_section=mat["bond_section"], precision=ld["precision"],
+                          **rate)
     print(f"  {setup.plan.n_records * setup.plan.record_every} steps at loading rate "
           f"{setup.plan.option('loading_rate'):.3g} (platen / wave speed), damping "
           f"{setup.plan.damping}")
@@ -419,7 +425,8 @@ def calibrate_cli(curve, config=None, out="results/calibrate", small=False, prog
     max_strain = ld["max_strain"] or 1.05 * float(target.strain[-1])
     setup = lab.UCS.setup(specs if len(specs) > 1 else specs[0], params, max_strain=max_strain,
                           damping=damping, record_every=ld["record_every"] or None,
-                          stiffness_margin=2.0, bond_section=mat["bond_section"], **rate)
+                          stiffness_margin=2.0, bond_section=mat["bond_section"],
+                          precision=ld["precision"], **rate)
     start = {n: _start_value(n, mat) for n in fit["parameters"]}
     bounds = {n: tuple(b) for n, b in fit["bounds"].items()}
     print(f"  fitting {', '.join(start)} ({fit['method']}, at most {fit['steps']} iterations); "

@@ -1,7 +1,10 @@
 """The pure UCS test (jdem.lab.curve) and calibration (jdem.calibrate).
 
 One ~106-disc specimen (4 mm x 8 mm) and one set-up serve every test, so the
-curve and its gradient compile once each.  float64 (tests/conftest.py).
+curve and its gradient compile once each.  float64 (``precision="float64"``):
+these tests check gradients against finite differences and runs against each
+other to round-off; tests/test_precision.py compares float32 Jacobians with
+float64 ones.
 
 Speed: these tests exercise the gradient and the optimiser, not the rock, so
 they load 8x faster than the quasi-static default (``RATE``) and pass
@@ -35,7 +38,7 @@ def specimen(seed):
 @functools.lru_cache(maxsize=None)
 def model_and_params():
     su = lab.UCS.setup(specimen(2), lt.rock_params(2, kappa=3e-3), max_strain=MAX_STRAIN,
-                       loading_rate=RATE, stiffness_margin=2.0)
+                       loading_rate=RATE, stiffness_margin=2.0, precision="float64")
     return su, su.params
 
 
@@ -67,7 +70,8 @@ def test_ensemble_members_equal_single_runs():
     with its own parameter set (member 1: E 10 % higher), give each packing's own
     curve."""
     params0 = lt.rock_params(2, kappa=3e-3)
-    kw = dict(max_strain=MAX_STRAIN, loading_rate=RATE, stiffness_margin=2.0)
+    kw = dict(max_strain=MAX_STRAIN, loading_rate=RATE, stiffness_margin=2.0,
+              precision="float64")
     ens = lab.UCS.setup([specimen(2), specimen(3)], params0, **kw)
     single = lab.UCS.setup(specimen(3), params0, dt=float(ens.params.dt),
                            record_every=ens.plan.record_every, **kw)
@@ -431,7 +435,8 @@ def test_ensemble_member_that_diverges_is_isolated():
     it diverges, its residuals count as a 100 % misfit (1 / sqrt(2) each), and
     member 0's residuals are its own curve's over sqrt(2)."""
     params0 = lt.rock_params(2, kappa=3e-3)
-    kw = dict(max_strain=MAX_STRAIN, loading_rate=RATE, stiffness_margin=2.0)
+    kw = dict(max_strain=MAX_STRAIN, loading_rate=RATE, stiffness_margin=2.0,
+              precision="float64")
     ens = lab.UCS.setup([specimen(2), specimen(3)], params0, **kw)
     pe = ens.params
     bad = pe._replace(dt=30.0 * pe.dt)

@@ -8,6 +8,9 @@ tests/test_bond_unit.py.
 Seed values: R = 0.5 m, rho = 2500, E = 10 GPa, nu = 0.22, T0 = c0 = 3 MPa,
 phi = 30 deg, eps_lim = 0.1 %, gamma_lim = 0.3 %, sigma_n = 3 MPa.
 
+float64 throughout (``precision="float64"``): these are analytic-value checks;
+tests/test_precision.py compares float32 with float64.
+
 Runtime: every run of one dimension uses the same Config, the same observe
 function and the same chunk size (``single_bond.CHUNK_STEPS``), so jdem.run
 compiles its chunk once per dimension (plus once for the batched sweep and
@@ -41,7 +44,7 @@ RESID_SHEAR = SIG * TANPHI      # 1.732 MPa
 @functools.lru_cache(maxsize=None)
 def result(mode, dim):
     """(history, state, config, params) of the default run, computed once per session."""
-    h, s, c = lt.single_bond_test(mode, dim=dim)
+    h, s, c = lt.single_bond_test(mode, dim=dim, precision="float64")
     return h, s, c, seed_params(dim)
 
 
@@ -231,7 +234,8 @@ def test_batched_eps_lim_sweep():
     params = jdem.broadcast_batch(base, len(eps_lims))._replace(
         bond_tensile_strain=jnp.asarray(eps_lims))
     max_strain = 1.15 * eps_lims.max()
-    hb, sb, _ = lt.single_bond_test("tension", dim=dim, params=params, max_strain=max_strain)
+    hb, sb, _ = lt.single_bond_test("tension", dim=dim, params=params, max_strain=max_strain,
+                                      precision="float64")
     n_rec = hb["strain"].shape[1]
     assert hb["strain"].shape == (8, n_rec) and hb["alpha"].shape == (8, n_rec)
     assert sb.particles.pos.shape == (8, 2, dim)
@@ -239,7 +243,8 @@ def test_batched_eps_lim_sweep():
     # separate runs (same Config, chunk and strain range: they reuse the compiled chunk)
     for k in (1, 6):
         pk = base._replace(bond_tensile_strain=jnp.asarray(eps_lims[k]))
-        hk, _, _ = lt.single_bond_test("tension", dim=dim, params=pk, max_strain=max_strain)
+        hk, _, _ = lt.single_bond_test("tension", dim=dim, params=pk, max_strain=max_strain,
+                                          precision="float64")
         for key in ("strain", "stress", "alpha", "broken", "break_step", "chi"):
             np.testing.assert_allclose(hb[key][k], hk[key], rtol=1e-12, atol=1e-6,
                                        err_msg=f"{key} of member {k}")
@@ -269,7 +274,8 @@ def test_grad_post_peak_tensile_stress():
     # the same within the two-increment lag of the engine (see test_tension).
     d_eps = 6e-7
     eps_at = 6e-4
-    su = lt.single_bond_setup("tension", dim=dim, strain_rate_per_step=d_eps, max_strain=eps_at)
+    su = lt.single_bond_setup("tension", dim=dim, strain_rate_per_step=d_eps, max_strain=eps_at,
+                              precision="float64")
     n_steps = su.n_load
     assert n_steps == 1000 and abs(n_steps * d_eps - eps_at) < 1e-15
     # one record block of 1,000 steps (checkpointed, the rollout default); the
@@ -285,7 +291,7 @@ def test_grad_post_peak_tensile_stress():
     val, g = jax.jit(jax.value_and_grad(stress))(p0)
     # the forward value agrees with the host loop (jdem.run)
     h0, _, _ = lt.single_bond_test("tension", dim=dim, params=p0, strain_rate_per_step=d_eps,
-                                   max_strain=eps_at)
+                                   max_strain=eps_at, precision="float64")
     assert abs(float(val) / h0["stress"][-1] - 1) < 1e-12
     assert 0 < float(val) < T0 and h0["alpha"][-1] > 0      # post-peak, not broken
 
@@ -295,7 +301,8 @@ def test_grad_post_peak_tensile_stress():
         for sgn in (1, -1):
             pk = p0._replace(**{field: jnp.asarray(x * (1 + sgn * rel))})
             hk, _, _ = lt.single_bond_test("tension", dim=dim, params=pk,
-                                           strain_rate_per_step=d_eps, max_strain=eps_at)
+                                           strain_rate_per_step=d_eps, max_strain=eps_at,
+                                           precision="float64")
             out.append(hk["stress"][-1])
         return (out[0] - out[1]) / (2 * rel * x)
 

@@ -102,3 +102,22 @@ def test_reduced_study_brittle_peak_and_critical_strains_are_the_seeds(study):
         assert abs(s["peak_stress"][k] / SEED_PEAK[kappa] - 1) < 3 * PEAK_SCATTER[kappa]
         assert abs(s["critical_strain"][k] / SEED_CRITICAL_STRAIN[kappa] - 1) \
             < 3 * STRAIN_SCATTER[kappa]
+
+
+@pytest.mark.slow
+def test_reduced_study_in_float32_matches_float64(study):
+    """The study runs in float32 (the lab tests' default); run again in float64,
+    every member's peak stress, Young's modulus and critical strain agree within
+    0.5 %.  Slow (~2 min more): the default suite compares float32 with float64
+    on the 330-disc rectangle (tests/test_precision.py)."""
+    spec, _, _, s32 = study
+    assert np.asarray(study[1]["axial_stress"]).dtype == np.float32
+    setup = lab.UCS.setup(spec, rock_params(2, kappa=list(KAPPAS)), platen_step=STEP,
+                          max_strain=2e-3, damping=lab.local(0.8), record_every=50,
+                          precision="float64")
+    s64 = lab.peak_summary(lab.run(setup, stop_stress_ratio=0.6, progress=False,
+                                   warn_dynamic=False).history)
+    for key in ("peak_stress", "youngs_modulus", "critical_strain"):
+        rel = np.abs(np.asarray(s32[key]) / np.asarray(s64[key]) - 1.0)
+        print(key, rel)
+        assert np.all(rel <= 5e-3), (key, rel)

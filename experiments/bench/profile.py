@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jdem import contact, integrate, neighbors
+from jdem import bond as bond_mod, contact, integrate, neighbors
 from jdem import walls as walls_mod
 from jdem.kinematics import segment_add
 from bench.timing import block, time_fn
@@ -64,6 +64,13 @@ def profile_case(state, params, config, repeats, log=print, detail=True, loop_st
         cc, fo, to, _ = contact.contact_forces(cc, pp, pr, config)
         return cc, pp, f + fo, t + to
 
+    def loop_bonds(x, pr):
+        bb, pp, f, t = x
+        pp = nudge(pp, f[0, 0])
+        bb, fo, to = bond_mod.bond_forces(bb, pp, pr, config.dim, jnp.zeros((), jnp.int32),
+                                          config.bond_section)
+        return bb, pp, f + fo, t + to
+
     def loop_walls(x, pr):
         ww, pp, f, t = x
         pp = nudge(pp, f[0, 0])
@@ -89,6 +96,9 @@ def profile_case(state, params, config, repeats, log=print, detail=True, loop_st
     rec("dispatch_overhead", lambda x: x + 1, jnp.zeros(()), desc="trivial jitted call")
     rec_loop("loop.contact_forces", loop_contact, (c, p, zf, zt), params, li, r_cheap,
              "(1) jdem.contact.contact_forces over the whole capacity")
+    if int(st.bonds.i.shape[0]):
+        rec_loop("loop.bond_forces", loop_bonds, (st.bonds, p, zf, zt), params, li, r_cheap,
+                 "(0) jdem.bond.bond_forces (002 eq 3-13) over every bond row")
     rec_loop("loop.wall_forces", loop_walls, (w, p, zf, zt), params, li, r_cheap,
              "(2) jdem.walls.wall_forces, W x N dense")
     rec_loop("loop.needs_rebuild", loop_needs, (p, jnp.zeros((), jnp.int32)), c, li, r_cheap,
@@ -200,11 +210,13 @@ def cost_model(res):
     if None in [best(k) for k in keys]:
         return dict(measured_ms_per_step=per_step, rebuilds_per_step=rb_per_step)
     cf, wf, nr, bd, st = (best(k) for k in keys)
+    bf = best("loop.bond_forces") or 0.0
     parts = {
+        "bond_forces": bf,
         "contact_forces": cf,
         "wall_forces": wf,
         "needs_rebuild": nr,
-        "rest of the no-rebuild step (integration, cond, copies)": max(0.0, st - cf - wf - nr),
+        "rest of the no-rebuild step (integration, cond, copies)": max(0.0, st - bf - cf - wf - nr),
         "build (amortised)": bd * rb_per_step,
     }
     predicted = sum(parts.values())

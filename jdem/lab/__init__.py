@@ -18,7 +18,7 @@ and :mod:`~jdem.lab.certify` (key figures, the quasi-static certificate),
 :mod:`~jdem.lab.single_bond` (002 §1.3) and :mod:`~jdem.lab.energy` (002 §1.4).
 """
 from jdem.lab.core import (LabResult, LabTest, Plan, Setup, checked_curve, curve,  # noqa: F401
-                           grow, run, stack_setups)
+                           grow, in_precision, run, stack_setups)
 from jdem.lab.damping import Damping, local, smooth  # noqa: F401
 from jdem.lab.platen import BIAXIAL, BRAZILIAN, TRIAXIAL, UCS, PlatenFrame  # noqa: F401
 from jdem.lab.tension import TENSION  # noqa: F401

@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jdem import neighbors
+from jdem import neighbors, precision as precision_mod
 from jdem.lab import pattern, summary
 from jdem.lab.checkpoint import load_checkpoint, save_checkpoint
 from jdem.batch import broadcast_batch, is_batched, member, put_member
@@ -136,6 +136,11 @@ class Setup:
     def test(self) -> LabTest:
         return self.plan.test
 
+    @property
+    def dtype(self):
+        """The working float dtype (float32 or float64) of state, params and frame."""
+        return jnp.asarray(self.params.dt).dtype
+
     def __repr__(self):
         p = self.plan
         return (f"Setup({p.test.name}, {self.n_members} member(s), {p.n_records} records x "
@@ -167,9 +172,22 @@ def ramp(k, plan: Plan):
     return jnp.where(kk < 0, 0.0, 0.5 - 0.5 * jnp.cos(jnp.pi * x))
 
 
-def _params_for(params, plan: Plan, n_members: int):
-    if plan.batched and not is_batched(params):
-        return broadcast_batch(params, n_members)   # one parameter set for every member
+def in_precision(setup: Setup, precision=precision_mod.DEFAULT) -> Setup:
+    """``setup`` with its state, params and frame in ``precision`` ("float32" or
+    "float64", :mod:`jdem.precision`); the test set-ups call it last."""
+    dtype = precision_mod.dtype_of(precision)
+    cast = lambda t: precision_mod.cast(t, dtype)
+    return setup.replace(state=cast(setup.state), params=cast(setup.params),
+                         frame=cast(setup.frame))
+
+
+def _params_for(params, setup: Setup):
+    """``params`` for the runners: in the set-up's precision (calibration may
+    hand float64 parameters to a float32 set-up; the cast is differentiable)
+    and broadcast to every member of a batched set-up."""
+    params = precision_mod.cast(params, setup.dtype)
+    if setup.plan.batched and not is_batched(params):
+        return broadcast_batch(params, setup.n_members)   # one parameter set for every member
     return params
 
 
@@ -226,7 +244,7 @@ def curve(setup: Setup, params: Params | None = None) -> LabResult:
     a batched set-up, ``params`` may be one parameter set (shared) or one per
     member.  Differentiable in ``params`` (and in ``setup.state``)."""
     params = setup.params if params is None else params
-    params = _params_for(params, setup.plan, setup.n_members)
+    params = _params_for(params, setup)
     hist, final = _pure(setup.state, params, setup.frame, setup.plan)
     return LabResult(hist, final, setup)
 
@@ -313,7 +331,7 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
         setup, params_saved, parts, k0 = load_checkpoint(resume, setup)
         params = params_saved if params is None else params
     params = setup.params if params is None else params
-    params = _strong(_params_for(params, setup.plan, setup.n_members))
+    params = _strong(_params_for(params, setup))
     check_params(params)
     plan = setup.plan
     failures = []

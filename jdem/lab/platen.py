@@ -37,7 +37,7 @@ from jdem import bond as bond_mod
 from jdem import measure, precision, timestep
 from jdem.batch import broadcast_batch, is_batched, member, stack_states
 from jdem.lab import damping as damping_mod
-from jdem.lab.core import LabTest, Plan, Setup, n_records_for, ramp
+from jdem.lab.core import LabTest, Plan, Setup, in_precision, n_records_for, ramp
 from jdem.materials import PLATEN
 from jdem.simulate import make_state
 from jdem.specimen import as_arrays
@@ -385,10 +385,13 @@ def platen_setup(test: LabTest, specimens, params, *, max_strain=3e-3, loading_r
                  platen_step=None, confining_stress=None, damping=None, record_every=None,
                  ramp_transits=DEFAULT_RAMP_TRANSITS, preload_transits=DEFAULT_PRELOAD_TRANSITS,
                  dt=None, stiffness_margin=1.0, platen_material=PLATEN, diameter=None,
-                 disc=False, top_stress=None, bond_section="circular") -> Setup:
+                 disc=False, top_stress=None, bond_section="circular",
+                 precision=precision.DEFAULT) -> Setup:
     """Build a platen test (see the test objects :data:`UCS`, :data:`BIAXIAL`,
     :data:`BRAZILIAN` for the arguments; ``bond_section`` is the 2D bonds'
-    bending section, :class:`jdem.state.Config`)."""
+    bending section, :class:`jdem.state.Config`; ``precision`` "float32"
+    (default) or "float64", :mod:`jdem.precision`: the set-up is built in
+    float64 when JAX runs with x64, then cast)."""
     damping = damping_mod.check(damping_mod.smooth() if damping is None else damping)
     single = hasattr(specimens, "particles") or (isinstance(specimens, tuple)
                                                  and not hasattr(specimens[0], "particles")
@@ -531,7 +534,7 @@ def platen_setup(test: LabTest, specimens, params, *, max_strain=3e-3, loading_r
                          ("loading_rate", float(np.min(np.asarray(steps) / dt / waves.max()))),
                          ("confining_stress", float(confining_stress or 0.0)),
                          ("max_strain", float(max_strain))))
-    return Setup(state, params, frame, plan)
+    return in_precision(Setup(state, params, frame, plan), precision)
 
 
 # ----------------------------------------------------------------------------- the tests
@@ -579,6 +582,8 @@ _COMMON = """
     bond_section     2D bending section of the bonds: "circular" (default, 002
                      eq 5 as the seed) or "slab" (unit thickness), see
                      :class:`jdem.state.Config`
+    precision        "float32" (default: within 0.5 % of float64, tests/
+                     test_precision.py) or "float64" (:mod:`jdem.precision`)
 """
 
 UCS = _make("ucs", derive_box, """Uniaxial compression (002 §2): fixed bottom

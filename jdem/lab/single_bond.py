@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jdem import bond as bond_mod
-from jdem import timestep
+from jdem import precision as precision_mod, timestep
 from jdem.batch import broadcast_batch, is_batched
 from jdem.kinematics import safe_norm
 from jdem.materials import seed_params
@@ -213,7 +213,7 @@ def _round_up(n, m):
 def single_bond_setup(mode, *, dim=3, params=None, radius=0.5, density=2500.0,
                       normal_stress=3e6, strain_rate_per_step=2e-7, max_strain=None,
                       record_every=5, preload_steps=1000, dt=None, dt_factor=None,
-                      chunk_steps=CHUNK_STEPS) -> SingleBondSetup:
+                      chunk_steps=CHUNK_STEPS, precision=precision_mod.DEFAULT) -> SingleBondSetup:
     """Build the specimen, the loads and the schedule of :func:`single_bond_test`
     without running it (e.g. to call the pure :func:`jdem.rollout` under
     ``jax.grad``).  Arguments as in :func:`single_bond_test`."""
@@ -288,6 +288,8 @@ def single_bond_setup(mode, *, dim=3, params=None, radius=0.5, density=2500.0,
     state = state._replace(particles=p)
     if batched:
         state = broadcast_batch(state, n_batch)
+    dtype = precision_mod.dtype_of(precision)
+    state, params = precision_mod.cast(state, dtype), precision_mod.cast(params, dtype)
     return SingleBondSetup(mode=mode, state=state, params=params, config=config,
                            velocity=velocity, n_preload=n_preload, n_load=n_load,
                            record_every=record_every, batched=batched)
@@ -296,7 +298,7 @@ def single_bond_setup(mode, *, dim=3, params=None, radius=0.5, density=2500.0,
 def single_bond_test(mode, *, dim=3, params=None, radius=0.5, density=2500.0,
                      normal_stress=3e6, strain_rate_per_step=2e-7, max_strain=None,
                      record_every=5, progress=False, preload_steps=1000, dt=None,
-                     dt_factor=None, chunk_steps=CHUNK_STEPS):
+                     dt_factor=None, chunk_steps=CHUNK_STEPS, precision=precision_mod.DEFAULT):
     """Single linked-bar bond in uniaxial tension or direct shear (002 §1.3),
     through :func:`jdem.run`.  Returns ``(history, state, config)``.
 
@@ -317,6 +319,9 @@ def single_bond_test(mode, *, dim=3, params=None, radius=0.5, density=2500.0,
     dt                   time step [s]; default ``timestep.recommended`` (pi / 10)
                          times the critical step with the upper particle free,
                          or ``dt_factor`` times that step
+    precision            working precision, "float32" (default) or "float64"
+                         (:mod:`jdem.precision`); the set-up is built in float64
+                         when JAX runs with x64, then cast
 
     ``history`` (dict of NumPy arrays, one entry per record of the loading
     phase; a leading batch axis for batched params):
@@ -335,7 +340,7 @@ def single_bond_test(mode, *, dim=3, params=None, radius=0.5, density=2500.0,
                            normal_stress=normal_stress, strain_rate_per_step=strain_rate_per_step,
                            max_strain=max_strain, record_every=record_every,
                            preload_steps=preload_steps, dt=dt, dt_factor=dt_factor,
-                           chunk_steps=chunk_steps)
+                           chunk_steps=chunk_steps, precision=precision)
     kw = dict(record_every=su.record_every, observe=single_bond_observe,
               chunk_steps=chunk_steps, progress=progress, batched=su.batched)
     state, config = su.state, su.config

@@ -27,7 +27,7 @@ from jdem import bond as bond_mod
 from jdem import integrate, measure, precision, timestep
 from jdem.batch import broadcast_batch, is_batched, member
 from jdem.lab import damping as damping_mod
-from jdem.lab.core import LabTest, Plan, Setup, n_records_for, ramp
+from jdem.lab.core import LabTest, Plan, Setup, in_precision, n_records_for, ramp
 from jdem.lab.platen import (DEFAULT_LOADING_RATE, DEFAULT_RAMP_TRANSITS, DEFAULT_RECORDS,
                              bulk_density, extent, slice_widths)
 from jdem.simulate import make_state
@@ -121,12 +121,13 @@ def boundary(state, params, frame: GripFrame):
 
 def setup(specimen, params, *, max_strain=1e-3, loading_rate=None, damping=None,
           grip_depth=None, record_every=None, ramp_transits=DEFAULT_RAMP_TRANSITS,
-          dt=None) -> Setup:
+          dt=None, precision=precision.DEFAULT) -> Setup:
     """Direct tension of one specimen (module docstring); ``params`` as for the
     platen tests (unbatched or with a member axis for a sweep).
 
     max_strain   extension reached at the end
     grip_depth   grip layer thickness [m] from each face (default 2 x largest radius)
+    precision    "float32" (default) or "float64" (:mod:`jdem.precision`)
     """
     damping = damping_mod.check(damping_mod.smooth() if damping is None else damping)
     if not (np.isfinite(max_strain) and max_strain > 0):
@@ -194,7 +195,7 @@ def setup(specimen, params, *, max_strain=1e-3, loading_rate=None, damping=None,
     plan = Plan(test=TENSION, config=config, n_records=n_records, record_every=record_every,
                 preload_records=0, ramp_records=ramp_records, batched=batched, damping=damping,
                 options=(("loading_rate", rate), ("max_strain", float(max_strain))))
-    return Setup(state, params, frame, plan)
+    return in_precision(Setup(state, params, frame, plan), precision)
 
 
 TENSION = LabTest("tension", setup, load, boundary, observe, derive)
