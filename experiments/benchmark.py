@@ -6,6 +6,8 @@
     python experiments/benchmark.py --dim 3 --n 1000000 --device-label "H100"
     python experiments/benchmark.py --sizes 10000 20000 --x64
     python experiments/benchmark.py --sweep         # also re-run under other XLA_FLAGS / 1 core
+    python experiments/benchmark.py --bonded --yade # bonded 3D UCS loop, float32 and float64,
+                                                    # and YADE on the same spheres and bonds
 
 Every case is a dense, deterministic (seeded NumPy) packing: a triangular lattice
 (2D) or an FCC lattice (3D) of spacing a little below the mean diameter, radii
@@ -85,6 +87,16 @@ def parse_args(argv=None):
                     help="pin the process to these CPUs before JAX starts, e.g. '0' or '0,1'")
     ap.add_argument("--sweep", action="store_true",
                     help="also re-run every case in child processes under other XLA flags / 1 core")
+    ap.add_argument("--bonded", action="store_true",
+                    help="the bonded 3D benchmark (bench/bonded.py): a UCS loop on N bonded spheres, "
+                         "timed in float32 and float64; writes bonded_benchmark.json / .md")
+    ap.add_argument("--bonded-n", type=int, default=20_000, help="spheres of the bonded specimen")
+    ap.add_argument("--records", type=int, default=4,
+                    help="--bonded: records (of 50 steps) per timed chunk (default 4)")
+    ap.add_argument("--yade", action="store_true",
+                    help="--bonded: also run YADE (yade -j 2) on the same specimen, in this run")
+    ap.add_argument("--precisions", nargs="+", default=["float32", "float64"],
+                    choices=["float32", "float64"], help="--bonded: precisions to time")
     ap.add_argument("--child-json", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.quick:
@@ -121,7 +133,9 @@ if ARGS is not None:
 
 import jax  # noqa: E402
 
-if ARGS is not None and ARGS.x64:
+# --bonded casts each set-up to its precision; x64 only where float64 is timed
+# (with x64 on, a float32 step carries int64 index arithmetic: measured 1.4x slower)
+if ARGS is not None and (ARGS.x64 or (ARGS.bonded and "float64" in ARGS.precisions)):
     jax.config.update("jax_enable_x64", True)
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -298,9 +312,106 @@ def run_sweep(args, log=print):
     return rows
 
 
+# ----------------------------------------------------------------------------- bonded
+def run_bonded(args, env, log=print):
+    """The bonded benchmark: jdem in every precision asked for, then YADE."""
+    from bench import bonded
+
+    particles, bonds, pos, rad, pairs, info = bonded.bonded_specimen(args.bonded_n, args.seed,
+                                                                     log=log)
+    report = dict(environment=env, specimen=info, cases=[])
+    for prec in args.precisions:
+        res, state, params, config = bonded.time_bonded(particles, bonds, prec, args.records,
+                                                        args.chunks, log)
+        if not args.no_profile:
+            res["profile"] = profile_case(state, params, config, args.repeats, log,
+                                          detail=False, loop_steps=res["chunk_steps"])
+            res["cost_model"] = cost_model(res)
+        report["cases"].append(res)
+    if args.yade:
+        su = bonded.bonded_setup(particles, bonds, args.precisions[0])   # same dt in every precision
+        p = su.params
+        height = float(np.ptp(np.asarray(particles.pos)[:, 2]))
+        with tempfile.TemporaryDirectory() as tmp:
+            inp, outp = os.path.join(tmp, "spec.npz"), os.path.join(tmp, "yade.json")
+            bonded.write_yade_input(inp, pos, rad, pairs, dict(
+                E=float(p.bond_youngs), nu=float(p.bond_poisson), density=bonded.DENSITY,
+                phi=float(p.bond_friction_angle), T0=float(p.bond_tensile),
+                c0=float(p.bond_cohesion), bond_factor=bonded.BOND_FACTOR,
+                local_damping=bonded.LOCAL_DAMPING, dt=float(p.dt),
+                platen_speed=bonded.STRAIN_PER_STEP * height / float(p.dt)))
+            steps = report["cases"][0]["chunk_steps"]
+            cmd = ["yade", "-j", "2", "-n", "-x", os.path.join(os.path.dirname(__file__), "bench",
+                                                              "yade_bonded.py"),
+                   inp, outp, str(steps), str(args.chunks)]
+            log("[bonded] " + " ".join(cmd))
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            if proc.returncode != 0 or not os.path.exists(outp):
+                log(f"[bonded] YADE failed:\n{proc.stdout[-1500:]}\n{proc.stderr[-1500:]}")
+                report["yade"] = dict(error=(proc.stdout + proc.stderr)[-3000:])
+            else:
+                report["yade"] = json.load(open(outp))
+                ver = subprocess.run(["yade", "--version"], capture_output=True, text=True)
+                report["yade"]["version"] = (ver.stdout.strip() or ver.stderr.strip())[:200]
+                y = report["yade"]
+                log(f"[bonded] YADE: {y['steps_per_s']:.1f} steps/s, "
+                    f"{y['particle_steps_per_s'] / 1e6:.2f} M particle-steps/s, bonds made "
+                    f"{y['bonds_made']} (input {y['bonds_input']})")
+                for c in report["cases"]:
+                    c["ratio_to_yade"] = c["steps_per_s"] / y["steps_per_s"]
+    env["load_average_end"] = list(os.getloadavg())
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bonded_benchmark.json").write_text(json.dumps(report, indent=1))
+    write_bonded_markdown(out / "bonded_benchmark.md", report)
+    print((out / "bonded_benchmark.md").read_text())
+    return 0 if all(c["finite"] and not c["overflowed"] for c in report["cases"]) else 1
+
+
+def write_bonded_markdown(path, report):
+    env, sp = report["environment"], report["specimen"]
+    lines = [f"# Bonded 3D benchmark ({env['date_utc']})", "",
+             f"`{env['command']}` on {env['cpu_model']} ({env['cpus_usable']} CPUs usable), "
+             f"jax {env['jax_version']}, backend {env['backend']}.", "",
+             f"Specimen: {sp['n']} spheres, radii {sp['radius_range_m']} m, {sp['n_bonds']} bonds "
+             f"({sp['bonds_per_sphere']:.2f} per sphere, {sp['bond_rule']}), a cell of "
+             f"{sp['cell_spheres']} at porosity {sp['cell_porosity']:.3f} tiled {sp['tiles']}^3 and "
+             f"cut to a cube; UCS platens, 2e-7 strain per step, local damping 0.2.", "",
+             "| code | precision | steps/s | particle-steps/s | bond-steps/s | vs YADE |",
+             "|---|---|---|---|---|---|"]
+    for c in report["cases"]:
+        lines.append(f"| jdem | {c['precision']} | {c['steps_per_s']:.1f} | "
+                     f"{c['particle_steps_per_s'] / 1e6:.2f} M | {c['bond_steps_per_s'] / 1e6:.1f} M | "
+                     f"{c.get('ratio_to_yade', float('nan')):.2f} |")
+    y = report.get("yade")
+    if y and "steps_per_s" in y:
+        lines.append(f"| YADE ({y['threads']} threads) | float64 | {y['steps_per_s']:.1f} | "
+                     f"{y['particle_steps_per_s'] / 1e6:.2f} M | {y['bond_steps_per_s'] / 1e6:.1f} M | 1 |")
+    elif y:
+        lines.append(f"\nYADE failed: `{y['error'][-300:]}`")
+    lines.append("")
+    for c in report["cases"]:
+        cm = c.get("cost_model", {})
+        if cm.get("parts_ms_per_step"):
+            lines.append(f"Where a {c['precision']} step goes (in-loop kernels, ms per step; measured "
+                         f"{cm['measured_ms_per_step']:.2f}, sum {cm['predicted_ms_per_step']:.2f}):")
+            for k, v in cm["parts_ms_per_step"].items():
+                lines.append(f"- {k}: {v:.3f} ({100 * cm['shares'][k]:.0f} %)")
+            lines.append("")
+        lines.append(f"{c['precision']}: compile {c['compile_s']:.1f} s (excluded), "
+                     f"{c['rebuilds_timed']} rebuilds in {c['steps_timed']} timed steps, "
+                     f"float64 primitives in the float32 step: "
+                     f"{c['float64_primitives_in_float32_step']}, bonds broken at the end "
+                     f"{c['bonds_broken_at_end']}.")
+        lines.append("")
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
 # ----------------------------------------------------------------------------- main
 def main(args):
     env = environment(args)
+    if args.bonded:
+        return run_bonded(args, env)
     log = (lambda *a, **k: print(*a, **k, file=sys.stderr, flush=True)) if args.child_json else \
         (lambda *a, **k: print(*a, **k, flush=True))
     log(f"jax {env['jax_version']} on {env['backend']} ({env['device']}), {env['dtype']}, "
