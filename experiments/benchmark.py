@@ -134,7 +134,6 @@ if ARGS is not None:
 import jax  # noqa: E402
 
 # --bonded casts each set-up to its precision; x64 only where float64 is timed
-# (with x64 on, a float32 step carries int64 index arithmetic: measured 1.4x slower)
 if ARGS is not None and (ARGS.x64 or (ARGS.bonded and "float64" in ARGS.precisions)):
     jax.config.update("jax_enable_x64", True)
 
