@@ -209,8 +209,10 @@ def ucs_settings(config_path=None, small=False, defaults=None) -> dict:
     _number("loading.local_damping", ld["local_damping"], lo=0, hi=1, hi_open=True)
     _number("loading.stop_stress_ratio", ld["stop_stress_ratio"], lo=0, hi=1, hi_open=True)
     _number("loading.record_every", ld["record_every"], lo=0, integer=True)
-    if ld["precision"] not in ("float32", "float64"):
-        raise InputError(f"loading.precision must be \"float32\" or \"float64\", got "
+    from jdem.precision import PRECISIONS
+
+    if ld["precision"] not in PRECISIONS:
+        raise InputError(f"loading.precision must be one of {PRECISIONS}, got "
                          f"{ld['precision']!r}")
     return cfg
 

@@ -18,8 +18,8 @@ Specimen (jdem's own tools, deterministic for a seed):
 Load: :data:`jdem.lab.UCS` with a fixed platen step of 2e-7 x the height per
 step, local damping 0.2 (``lab.local(0.2)``), the default rock
 (:func:`jdem.materials.rock_params`, E = 30 GPa, bonds that yield, soften and
-break).  The timed loop is the lab layer's own compiled record block
-(``lab.core._compiled_records``, what ``lab.run`` runs), so contact detection,
+break).  The timed loop is the lab layer's own compiled record chunk
+(``lab.core.record_chunk``, what ``lab.run`` runs), so contact detection,
 bond breakage and the walls are all on; compile time is reported apart.
 """
 from __future__ import annotations
@@ -93,18 +93,23 @@ def bonded_specimen(n, seed=0, cell_n=CELL_N, log=print):
     return particles, bonds, pos, rad, (i, j), info
 
 
+def specimen_height(particles) -> float:
+    """Centre-to-centre height of the specimen [m] (the platen step's length scale)."""
+    return float(np.ptp(np.asarray(particles.pos)[:, 2]))
+
+
 def bonded_setup(particles, bonds, precision):
     """The UCS set-up of the benchmark in ``precision``."""
-    height = float(np.ptp(np.asarray(particles.pos)[:, 2]))
     params = rock_params(3, radius=float(np.mean(R_RANGE)))
-    return lab.UCS.setup((particles, bonds), params, platen_step=STRAIN_PER_STEP * height,
+    return lab.UCS.setup((particles, bonds), params,
+                         platen_step=STRAIN_PER_STEP * specimen_height(particles),
                          damping=lab.local(LOCAL_DAMPING), max_strain=1e-2, record_every=50,
                          ramp_transits=0.0, precision=precision)
 
 
 def float64_ops(fn, *args):
-    """Primitives of ``fn``'s jaxpr (nested ones included) with a float64 output:
-    0 for a float32 step that stays in float32 although x64 is on."""
+    """Primitives of ``fn``'s jaxpr (nested ones included: jit, scan, cond
+    branches) with a float64 output, for a float32 program run with x64 on."""
     count = 0
 
     def walk(jaxpr):
@@ -112,11 +117,12 @@ def float64_ops(fn, *args):
         for eqn in jaxpr.eqns:
             if any(getattr(v.aval, "dtype", None) == jnp.float64 for v in eqn.outvars):
                 count += 1
-            for sub in jax.core.subjaxprs(eqn) if hasattr(jax.core, "subjaxprs") else ():
-                walk(sub)
             for p in eqn.params.values():
-                if hasattr(p, "jaxpr"):
-                    walk(p.jaxpr if hasattr(p.jaxpr, "eqns") else p.jaxpr.jaxpr)
+                for q in (p if isinstance(p, (tuple, list)) else (p,)):
+                    if hasattr(q, "eqns"):
+                        walk(q)
+                    elif hasattr(q, "jaxpr") and hasattr(q.jaxpr, "eqns"):
+                        walk(q.jaxpr)
 
     walk(jax.make_jaxpr(fn)(*args).jaxpr)
     return count
@@ -130,14 +136,17 @@ def time_bonded(particles, bonds, precision, records_per_chunk, chunks, log=prin
     state = su.state
     n = int(np.sum(np.asarray(state.particles.valid)))
     k = records_per_chunk * plan.record_every
-    fn = lab_core._compiled_records(plan, records_per_chunk)
+    fn = lab_core.record_chunk(plan, records_per_chunk)
+    k0 = lambda c: jnp.asarray(c * records_per_chunk, jnp.int32)   # noqa: E731
     t0 = time.perf_counter()
-    compiled = fn.lower(state, params, frame, 0).compile()
+    compiled = fn.lower(state, params, frame, k0(0)).compile()
     compile_s = time.perf_counter() - t0
-    f64 = float64_ops(lambda s: lab_core._block(plan, params, frame)(s, 0), state) \
-        if precision == "float32" else None
+    # float64 values in the float32 chunk (x64 on), counted for the report; one is
+    # the recorded fracture degree, a ratio of integer counts (jdem.bond.bond_stats)
+    f64 = float64_ops(fn, state, params, frame, k0(0)) \
+        if precision == "float32" and jax.config.jax_enable_x64 else None
     t0 = time.perf_counter()
-    state, _ = jax.block_until_ready(compiled(state, params, frame, 0))   # warm-up chunk
+    state, _ = jax.block_until_ready(compiled(state, params, frame, k0(0)))   # warm-up chunk
     warm_s = time.perf_counter() - t0
     if bool(neighbors.overflowed(state.contacts, plan.config)):
         raise RuntimeError("bonded benchmark: the neighbour list overflowed in the warm-up")
@@ -146,7 +155,7 @@ def time_bonded(particles, bonds, precision, records_per_chunk, chunks, log=prin
     for c in range(chunks):
         b0 = int(state.contacts.n_builds)
         t0 = time.perf_counter()
-        state, rec = jax.block_until_ready(compiled(state, params, frame, (c + 1) * records_per_chunk))
+        state, _ = jax.block_until_ready(compiled(state, params, frame, k0(c + 1)))
         times.append(time.perf_counter() - t0)
         builds.append(int(state.contacts.n_builds) - b0)
         log(f"  [{precision}] chunk {c}: {k / times[-1]:.1f} steps/s, "
@@ -164,7 +173,7 @@ def time_bonded(particles, bonds, precision, records_per_chunk, chunks, log=prin
                steps_per_s=steps, particle_steps_per_s=n * steps, bond_steps_per_s=n_bonds * steps,
                steps_per_s_aggregate=agg,
                throughput=dict(aggregate=dict(ms_per_step=1e3 / agg)),
-               float64_primitives_in_float32_step=f64,
+               float64_primitives_in_float32_chunk=f64,
                bonds_broken_at_end=broken,
                final_axial_strain=float(state.step) * STRAIN_PER_STEP,
                contact_capacity=int(state.contacts.i.shape[0]),
@@ -173,12 +182,17 @@ def time_bonded(particles, bonds, precision, records_per_chunk, chunks, log=prin
                finite=bool(np.all(np.isfinite(np.asarray(state.particles.pos)))))
     log(f"[bonded {precision}] {steps:.1f} steps/s (median chunk), {n * steps / 1e6:.2f} M "
         f"particle-steps/s, {n_bonds * steps / 1e6:.1f} M bond-steps/s; compile {compile_s:.1f} s"
-        + (f"; float64 primitives in the float32 step: {f64}" if f64 is not None else ""))
+        + (f"; float64 primitives in the float32 chunk: {f64}" if f64 is not None else ""))
     return res, state, params, plan.config
 
 
-def write_yade_input(path, pos, rad, pairs, setup_info):
-    """The spheres, the bonded pairs and the load for ``bench/yade_bonded.py``
-    (NumPy .npz), so that YADE runs the very same specimen."""
-    np.savez(path, pos=pos, rad=rad, i=pairs[0], j=pairs[1], **{
-        k: np.asarray(v) for k, v in setup_info.items()})
+def write_yade_input(path, pos, rad, pairs, particles, params):
+    """The spheres, the bonded pairs, the material, the time step and the platen
+    speed of a timed case (``params`` as run) for ``bench/yade_bonded.py`` (NumPy
+    .npz), so that YADE runs the very same specimen and load."""
+    dt = float(params.dt)
+    np.savez(path, pos=pos, rad=rad, i=pairs[0], j=pairs[1], **{k: np.asarray(v) for k, v in dict(
+        E=float(params.bond_youngs), nu=float(params.bond_poisson), density=DENSITY,
+        phi=float(params.bond_friction_angle), T0=float(params.bond_tensile),
+        c0=float(params.bond_cohesion), bond_factor=BOND_FACTOR, local_damping=LOCAL_DAMPING,
+        dt=dt, platen_speed=STRAIN_PER_STEP * specimen_height(particles) / dt).items()})

@@ -279,7 +279,10 @@ def checked_curve(setup: Setup, params: Params | None = None, *, max_grow=4):
 
 # ----------------------------------------------------------------------------- host loop
 @functools.lru_cache(maxsize=8)   # each program holds memory mappings
-def _compiled_records(plan: Plan, n: int):
+def record_chunk(plan: Plan, n: int):
+    """The jitted chunk the host loop :func:`run` runs: ``fn(state, params, frame,
+    k0)`` takes records ``k0 .. k0 + n - 1`` (``k0`` an int32 scalar) and returns
+    ``(state, raw records)``; one program per (plan, n), cached."""
     def records(state, params, frame, k0):
         return jax.lax.scan(_block(plan, params, frame), state, k0 + jnp.arange(n))
 
@@ -356,7 +359,7 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
         while k0 < plan.n_records:
             n = min(per, plan.n_records - k0)
             earlier = [f.member for f in failures]
-            fn = _compiled_records(plan, n)
+            fn = record_chunk(plan, n)
             new_state, raw = fn(state, params, frame, jnp.asarray(k0, jnp.int32))
             if bool(neighbors.overflowed(new_state.contacts, plan.config)):
                 need = state.contacts._replace(n_pairs=new_state.contacts.n_pairs,
@@ -451,7 +454,7 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
                 raise InputError("keep_peak_state: the peak lies in the part of the run "
                                  "before the resumed checkpoint; run it without resume")
             s0, kstart, j, plan_b = peak_at[b]
-            fn = _compiled_records(plan_b, j + 1)
+            fn = record_chunk(plan_b, j + 1)
             s, _ = fn(s0, params, frame, jnp.asarray(kstart, jnp.int32))
             rec = pattern.bond_record(member(s, b) if plan.batched else s, "peak_")
             rec["peak_step"] = np.asarray(np.asarray(s.step).reshape(-1)[b if plan.batched else 0])
@@ -471,7 +474,7 @@ def _good_state(setup: Setup, params, k0: int, first: int):
     start = int(np.min(np.asarray(state.step)))
     j, m = divmod(first - start, plan.record_every)
     if j:
-        state, _ = _compiled_records(plan, j)(state, params, setup.frame,
+        state, _ = record_chunk(plan, j)(state, params, setup.frame,
                                               jnp.asarray(k0, jnp.int32))
     state = plan.test.load(state, jnp.asarray(k0 + j, jnp.int32), setup.frame, plan)
     return advance(state, params, plan.config, m, batched=plan.batched,
