@@ -5,6 +5,7 @@ import pytest
 
 import jdem
 from jdem import neighbors
+from jdem.bond import create_bonds
 
 
 def _brute_pairs(pos, rad, skin):
@@ -93,3 +94,25 @@ def test_history_survives_rebuild_and_bonded_pairs_are_excluded():
                                            valid=jnp.array([True, True]))
     excluded = neighbors.build(c, p, cfg, bonds)
     assert _pairs(excluded) == set(before) - {(0, 1), (1, 2)}
+
+
+def test_a_bonded_assembly_gets_room_for_twice_its_pairs_not_a_dense_packing():
+    """The default capacity of jdem.neighbors.allocate: bonded pairs never enter the
+    list, so a bonded specimen is sized by the pairs found (BONDED_SLACK), a loose
+    one by dense_capacity; either way every pair found is listed."""
+    rng = np.random.default_rng(3)
+    pos = np.stack(np.meshgrid(np.arange(12), np.arange(12), indexing="ij"), -1).reshape(-1, 2)
+    pos = pos * 2.05e-3 + rng.uniform(-5e-5, 5e-5, pos.shape)
+    p = jdem.make_particles(pos, np.full(len(pos), 1e-3))
+    _, cfg = jdem.make_state(p, skin=2e-4)
+    bonds = create_bonds(p, 2, gap_tolerance=0.06e-3)
+    free, _ = neighbors.allocate(p, cfg)
+    bonded, _ = neighbors.allocate(p, cfg, bonds)
+    need = int(bonded.n_pairs)
+    assert free.i.shape[0] == neighbors.dense_capacity(p, 2)
+    assert bonded.i.shape[0] == max(neighbors.room_for(need, neighbors.BONDED_SLACK),
+                                    neighbors.room_for(need))
+    assert bonded.i.shape[0] < free.i.shape[0]
+    assert _pairs(bonded) == _brute_pairs(pos, np.full(len(pos), 1e-3), 2e-4) - set(
+        zip(np.asarray(bonds.i)[np.asarray(bonds.valid)].tolist(),
+            np.asarray(bonds.j)[np.asarray(bonds.valid)].tolist()))
