@@ -353,16 +353,16 @@ def allocate(particles: Particles, config: Config, bonds=None, *, slack=1.25,
     """
     c = build(empty(particles, 1), particles, config, bonds)
     need_pairs, need_cell = int(c.n_pairs), int(c.max_in_cell)
-    if min_capacity is None:
-        bonded = bonds is not None and bool(np.any(np.asarray(bonds.valid)))
-        min_capacity = room_for(need_pairs, BONDED_SLACK) if bonded \
-            else dense_capacity(particles, config.dim)
     if old is not None:
         need_pairs = max(need_pairs, int(np.max(np.asarray(old.n_pairs))))
         need_cell = max(need_cell, int(np.max(np.asarray(old.max_in_cell))))
     if need_cell > config.max_per_cell:  # the probe could not see pairs in overfull cells
         return allocate(particles, config.replace(max_per_cell=need_cell + 2), bonds,
                         slack=slack, old=old, min_capacity=min_capacity)
+    if min_capacity is None:  # after the merge: twice the most pairs ever seen
+        bonded = bonds is not None and bool(np.any(np.asarray(bonds.valid)))
+        min_capacity = room_for(need_pairs, BONDED_SLACK) if bonded \
+            else dense_capacity(particles, config.dim)
     cap = max(min_capacity, room_for(need_pairs, slack),
               0 if old is None else old.i.shape[-1])
     start = empty(particles, cap) if old is None else _resize(old, cap)

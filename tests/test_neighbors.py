@@ -113,6 +113,10 @@ def test_a_bonded_assembly_gets_room_for_twice_its_pairs_not_a_dense_packing():
     assert bonded.i.shape[0] == max(neighbors.room_for(need, neighbors.BONDED_SLACK),
                                     neighbors.room_for(need))
     assert bonded.i.shape[0] < free.i.shape[0]
+    # a re-allocation keeps twice the most pairs ever recorded, not this build's
+    seen = bonded._replace(n_pairs=jnp.asarray(3 * need, bonded.n_pairs.dtype))
+    again, _ = neighbors.allocate(p, cfg, bonds, old=seen)
+    assert again.i.shape[0] == neighbors.room_for(3 * need, neighbors.BONDED_SLACK)
     assert _pairs(bonded) == _brute_pairs(pos, np.full(len(pos), 1e-3), 2e-4) - set(
         zip(np.asarray(bonds.i)[np.asarray(bonds.valid)].tolist(),
             np.asarray(bonds.j)[np.asarray(bonds.valid)].tolist()))
