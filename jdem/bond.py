@@ -31,7 +31,7 @@ import numpy as np
 from jdem.kinematics import (components, cross_r_f, dot, floored_norm, project_tangent,
                              relative_velocity, rotate_into_plane, rows, safe_norm, scale,
                              segment_add, unit)
-from jdem.state import Bonds, Particles, Params, empty_bonds
+from jdem.state import Bonds, Particles, Params, aligned_rows, empty_bonds
 
 Array = jnp.ndarray
 
@@ -103,8 +103,9 @@ def create_bonds(particles: Particles, dim: int, *, gap_tolerance: float,
 
     Host-side (NumPy), O(N) with a uniform cell grid of edge 2 max(R) + tolerance.
     Rows are i < j, sorted by (i, j); every evolving field starts at zero and
-    ``break_step`` at -1.  ``capacity`` (default: the number found) pads with
-    invalid rows; a capacity below the number found raises ``ValueError``.
+    ``break_step`` at -1.  ``capacity`` (default: the number found, rounded up
+    by :func:`jdem.state.aligned_rows`) pads with invalid rows; a capacity
+    below the number found raises ``ValueError``.
     """
     pos = np.asarray(particles.pos, dtype=np.float64)
     rad = np.asarray(particles.radius, dtype=np.float64)
@@ -157,15 +158,16 @@ def create_bonds(particles: Particles, dim: int, *, gap_tolerance: float,
 def bonds_for_pairs(i, j, dim: int, *, capacity: int | None = None, dtype=None) -> Bonds:
     """Fresh bonds for the pairs ``(i[k], j[k])`` (host integer arrays, i < j): rows
     sorted by (i, j), every evolving field at zero, ``break_step`` at -1.
-    ``capacity`` (default: the number of pairs) pads with invalid rows; a capacity
-    below it raises ``ValueError``."""
+    ``capacity`` (default: the number of pairs rounded up by
+    :func:`jdem.state.aligned_rows`) pads with invalid rows; a capacity below
+    it raises ``ValueError``."""
     bi, bj = np.asarray(i, np.int64), np.asarray(j, np.int64)
     if bi.shape != bj.shape or bi.ndim != 1 or np.any(bi >= bj):
         raise ValueError("bonds_for_pairs: i and j must be 1-D of one length with i < j")
     srt = np.lexsort((bj, bi))
     bi, bj = bi[srt], bj[srt]
     found = bi.size
-    capacity = found if capacity is None else int(capacity)
+    capacity = aligned_rows(found) if capacity is None else int(capacity)
     if capacity < found:
         raise ValueError(f"create_bonds: capacity {capacity} is smaller than the number of "
                          f"bonds found {found}")

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jdem.kinematics import dot
-from jdem.state import Config, Contacts, Particles
+from jdem.state import Config, Contacts, Particles, aligned_rows
 
 
 # ----------------------------------------------------------------------------- grid
@@ -323,16 +323,18 @@ def grid_for(particles: Particles, *, skin, margin=None, extra_bounds=None):
 
 
 def room_for(need_pairs: int, slack: float = 1.25) -> int:
-    """List rows to allocate for ``need_pairs`` pairs: ``slack`` times as many plus 16."""
-    return int(math.ceil(need_pairs * slack)) + 16
+    """List rows to allocate for ``need_pairs`` pairs: ``slack`` times as many plus
+    16, rounded up by :func:`jdem.state.aligned_rows`."""
+    return aligned_rows(int(math.ceil(need_pairs * slack)) + 16)
 
 
 BONDED_SLACK = 2.0   # list rows per pair found, for a bonded assembly (see allocate)
 
 
 def dense_capacity(particles: Particles, dim: int) -> int:
-    """Room for a dense packing: ~3 listed pairs per disc, ~7 per sphere."""
-    return int(np.sum(np.asarray(particles.valid))) * (3 if dim == 2 else 7)
+    """Room for a dense packing: ~3 listed pairs per disc, ~7 per sphere (rounded
+    up by :func:`jdem.state.aligned_rows`)."""
+    return aligned_rows(int(np.sum(np.asarray(particles.valid))) * (3 if dim == 2 else 7))
 
 
 def allocate(particles: Particles, config: Config, bonds=None, *, slack=1.25,

@@ -62,7 +62,7 @@ def setup(dim, r1, r2, gap=0.0):
     pos = np.zeros((2, dim))
     pos[1, -1] = r1 + r2 + gap
     parts = make_particles(pos, [r1, r2], density=2500.0)
-    bonds = create_bonds(parts, dim, gap_tolerance=gap + 1e-9)
+    bonds = create_bonds(parts, dim, gap_tolerance=gap + 1e-9, capacity=1)
     assert bool(bonds.valid[0]) and bonds.i.shape == (1,)
     params = make_params(dim=dim, dt=DT, bond_youngs=E, bond_poisson=NU, bond_tensile=T0,
                          bond_cohesion=C0, bond_friction_angle=PHI,
