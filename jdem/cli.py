@@ -332,7 +332,7 @@ CALIBRATE_DEFAULTS = {
     "material": dict(UCS_DEFAULTS["material"]),
     "loading": dict(UCS_DEFAULTS["loading"], max_strain=None),
     "fit": dict(parameters=["E", "strength"], method="lm", steps=20, bounds={},
-                require_quasi_static=True),
+                require_quasi_static=True, extrapolate_rate=False),
 }
 CALIBRATE_SMALL = {"specimen": dict(width=0.004, height=0.008, r_min=0.2e-3, r_max=0.35e-3,
                                     seed=2, coordination=4.5),
@@ -378,9 +378,9 @@ def calibrate_settings(config_path=None, small=False) -> dict:
             raise InputError(f"fit.bounds.{n} must be [lo, hi], got {b!r}")
         for k, v in enumerate(b):
             _number(f"fit.bounds.{n}[{k}]", v)
-    if not isinstance(fit["require_quasi_static"], bool):
-        raise InputError(f"fit.require_quasi_static must be true or false, got "
-                         f"{fit['require_quasi_static']!r}")
+    for key in ("require_quasi_static", "extrapolate_rate"):
+        if not isinstance(fit[key], bool):
+            raise InputError(f"fit.{key} must be true or false, got {fit[key]!r}")
     return cfg
 
 
@@ -433,12 +433,14 @@ def calibrate_cli(curve, config=None, out="results/calibrate", small=False, prog
     bounds = {n: tuple(b) for n, b in fit["bounds"].items()}
     print(f"  fitting {', '.join(start)} ({fit['method']}, at most {fit['steps']} iterations); "
           f"loading rate {setup.plan.option('loading_rate'):.3g}"
+          + (" and half of it, extrapolated to rate zero" if fit["extrapolate_rate"] else "")
           + ("" if fit["require_quasi_static"] else
              " -- quasi-static check OFF: the values describe this loading rate"))
     result = out / "calibration.h5"
     res = calibrate.calibrate(setup, target, start, bounds=bounds or None, method=fit["method"],
                               steps=fit["steps"], progress=progress, out=result,
                               require_quasi_static=fit["require_quasi_static"],
+                              extrapolate_rate=fit["extrapolate_rate"],
                               resume=_resume_file(result.with_suffix(".checkpoint.h5"), resume))
     plot.plot_calibration(res, out / "calibration.png")
     print(calibrate.report(res))

@@ -516,3 +516,59 @@ def test_bad_lab_input_names_the_field():
         lab.UCS.setup(_demo_spec(), params, damping="local")
     with pytest.raises(InputError, match="alpha must lie"):
         lab.local(1.0)
+
+
+# ----------------------------------------------------------------------------- rate extrapolation
+def test_rate_extrapolation_removes_a_first_order_rate_term():
+    """A figure linear in the loading rate, S(v) = S0 + a v, is extrapolated to S0
+    exactly from v and v / f.  A curve whose peak stress and peak strain both
+    grow linearly with the rate, S_v(e) = A(v) g(e / e_p(v)), g(x) = x (2 - x),
+    recorded at other strains by the slower run, is extrapolated to the
+    rate-zero curve A0 g(e / e0) (to the linear interpolation of the slower
+    run), batched or not; its peak strain is found between records."""
+    s0, a, v = 8.7e6, 3e10, 8e-6
+    for f in (2.0, 4.0):
+        np.testing.assert_allclose(lab.rate_extrapolated(s0 + a * v, s0 + a * v / f, f), s0,
+                                   rtol=1e-12)
+    a0, e0 = 9e6, 4.7e-4
+
+    def hist(n, rate):
+        amp, ep = a0 * (1 + 2e4 * rate), e0 * (1 + 1e4 * rate)
+        e = np.linspace(0.0, 1.5 * ep, n)
+        return dict(axial_strain=e, axial_stress=amp * (e / ep) * (2 - e / ep),
+                    step=np.arange(n), first_bad_step=np.int64(-1))
+
+    fast, slow = hist(601, v), hist(1203, v / 2)
+    assert float(lab.peak_strain(fast["axial_strain"], fast["axial_stress"])) == \
+        pytest.approx(e0 * (1 + 1e4 * v), rel=1e-12)
+    out = lab.extrapolated_history(fast, slow)
+    e = np.asarray(out["axial_strain"])
+    np.testing.assert_allclose(e, fast["axial_strain"] * e0 / (e0 * (1 + 1e4 * v)), rtol=1e-12)
+    np.testing.assert_allclose(out["axial_stress"], a0 * (e / e0) * (2 - e / e0), rtol=0,
+                               atol=2e-5 * a0)
+    np.testing.assert_allclose(np.max(out["axial_stress"]), a0, rtol=2e-6)
+    np.testing.assert_array_equal(out["axial_stress_at_rate"], fast["axial_stress"])
+    two = lambda h: {k: np.stack([x, x]) for k, x in h.items()}   # noqa: E731
+    both = lab.extrapolated_history(two(fast), two(slow))
+    np.testing.assert_allclose(both["axial_stress"][1], out["axial_stress"], rtol=1e-12)
+    # pointwise extrapolation at equal strains would overshoot the peak here
+    naive = lab.rate_extrapolated(fast["axial_stress"],
+                                  np.interp(fast["axial_strain"], slow["axial_strain"],
+                                            slow["axial_stress"]))
+    assert np.max(naive) > 1.001 * a0
+
+
+def test_certificate_estimates_the_distance_to_the_quasi_static_peak():
+    """With a peak change c at half the rate, the first-order error of the run's
+    peak is 2 c, and the extrapolated peak is what lies that far below it."""
+    fast = dict(peak_stress=np.float64(9.242e6))
+    slow = dict(peak_stress=np.float64(8.980e6))
+    cert = lab.Certificate(peak_change=9.242 / 8.980 - 1, modulus_change=0.0, kinetic_ratio=0.0,
+                           quasi_static=False, tolerance=0.02, loading_rate=8e-6, summary=fast,
+                           slow_summary=slow)
+    np.testing.assert_allclose(cert.quasi_static_peak, 8.718e6, rtol=1e-12)
+    np.testing.assert_allclose(cert.peak_error, 2 * (9.242 / 8.980 - 1), rtol=1e-12)
+    # the first-order error of the fast peak, measured from the extrapolated peak
+    np.testing.assert_allclose(9.242e6 / cert.quasi_static_peak - 1,
+                               cert.peak_error * 8.980 / 8.718, rtol=1e-12)
+    assert "from the quasi-static peak" in str(cert)

@@ -28,7 +28,8 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
               jacobian="auto", steps=30, rtol=1e-4, atol=1e-8, learning_rate=0.1,
               weights=LossWeights(), tol=1e-8, patience=None, min_improvement=1e-3,
               progress=True, out=None, checkpoint=None, resume=None,
-              require_quasi_static=True) -> CalibrationResult:
+              require_quasi_static=True, extrapolate_rate=False,
+              rate_factor=2.0) -> CalibrationResult:
     """Fit the named parameters of ``start`` to ``target``.
 
     setup          a :class:`jdem.lab.Setup` (e.g. ``jdem.lab.UCS.setup(specimen,
@@ -51,13 +52,22 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
                    ``out``); ``resume``: such a file to continue from
     require_quasi_static  certify each set-up at the start values first
                    (:func:`jdem.lab.certify`) and refuse one that is not
+    extrapolate_rate  fit the quasi-static estimate instead of the run at the
+                   set-up's rate: every set-up also runs ``rate_factor`` times
+                   slower and each residual is extrapolated to rate zero
+                   (:func:`jdem.lab.extrapolated_history`).  Costs 1 +
+                   ``rate_factor`` times the run per iteration
+                   (experiments/quasi_static_calibration.py measures what it buys)
     """
     if method not in METHODS:
         raise InputError(f"method must be one of {METHODS}, got {method!r}")
     if patience is None:
         patience = 20 if method == "adam" else 3
     check_names(start)
-    terms = make_terms(setup, target, weights)
+    if not (isinstance(rate_factor, (int, float)) and rate_factor > 1):
+        raise InputError(f"rate_factor must be a number above 1, got {rate_factor!r}")
+    terms = make_terms(setup, target, weights, extrapolate_rate=extrapolate_rate,
+                       factor=rate_factor)
     names = list(start)
     k = len(names)
     if jacobian == "auto":
@@ -88,7 +98,7 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
         checkpoint = pathlib.Path(out).with_suffix(".checkpoint.h5")
     t0 = time.time()
     curves0 = fitted_curves(terms, plist, {n: float(start[n]) for n in names})
-    terms = [t._replace(setup=c[1]) for t, c in zip(terms, curves0)]
+    terms = [c[1] for c in curves0]
     u = jnp.asarray([to_internal(values0[n], *lims[n]) for n in names])
     n_points = sum(n_data(t) for t in terms)
 

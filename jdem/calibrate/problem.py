@@ -21,16 +21,22 @@ from jdem.validate import InputError
 
 class Term(NamedTuple):
     """One simulated test and what it is compared with: a :class:`Target` curve
-    or a tuple of :class:`Scalar` figures."""
+    or a tuple of :class:`Scalar` figures.  With ``slow`` (the set-up
+    :func:`jdem.lab.slowed` by ``factor``) the residuals are those of the
+    quasi-static estimate of the curve from the two runs
+    (:func:`jdem.lab.extrapolated_curve`)."""
 
     setup: lab.Setup
     target: object
     weights: LossWeights
+    slow: lab.Setup | None = None
+    factor: float = 2.0
 
 
-def make_terms(setup, target, weights) -> list[Term]:
+def make_terms(setup, target, weights, *, extrapolate_rate=False, factor=2.0) -> list[Term]:
     """One :class:`Term` per set-up (a set-up or a list of them), each with its
-    target checked (:func:`jdem.targets.load_target`, or :class:`Scalar` figures)."""
+    target checked (:func:`jdem.targets.load_target`, or :class:`Scalar` figures);
+    with ``extrapolate_rate``, each also with its set-up slowed by ``factor``."""
     setups = list(setup) if isinstance(setup, (list, tuple)) else [setup]
     targets = list(target) if isinstance(target, list) else [target]
     if len(setups) != len(targets):
@@ -46,8 +52,15 @@ def make_terms(setup, target, weights) -> list[Term]:
             t = tuple(check_scalar(x) for x in t)
         else:
             t = load_target(t)
-        out.append(Term(su, t, weights))
+        slow = lab.slowed(su, factor) if extrapolate_rate else None
+        out.append(Term(su, t, weights, slow, float(factor)))
     return out
+
+
+def grow_term(term: Term) -> Term:
+    """``term`` with the neighbour lists of its set-up(s) grown (:func:`jdem.lab.grow`)."""
+    return term._replace(setup=lab.grow(term.setup),
+                         slow=None if term.slow is None else lab.grow(term.slow))
 
 
 def _member_residuals(hist, term: Term):
@@ -74,14 +87,21 @@ def term_residuals(hist: dict, term: Term):
 
 
 def residual_fn(u, args, *, names, lims, terms):
-    """fn(u, args) -> (residuals, aux) with args = ((setup, params), ...) per term."""
+    """fn(u, args) -> (residuals, aux) with args = ((setup, slow set-up or None,
+    params), ...) per term."""
     vals = {n: to_value(u[i], *lims[n]) for i, n in enumerate(names)}
     rs, over, ok = [], [], []
-    for term, (setup, params) in zip(terms, args):
-        hist = lab.curve(setup, material(params, vals)).history
+    for term, (setup, slow, params) in zip(terms, args):
+        prm = material(params, vals)
+        hist = lab.curve(setup, prm).history
+        overflowed = hist["overflowed"]
+        if slow is not None:
+            hist_slow = lab.curve(slow, prm).history
+            hist = lab.extrapolated_history(hist, hist_slow, term.factor)
+            overflowed = overflowed | hist_slow["overflowed"]
         r, good = term_residuals(hist, term)
         rs.append(r)
-        over.append(hist["overflowed"])
+        over.append(overflowed)
         ok.append(good)
     r = jnp.concatenate(rs)
     return r, dict(overflowed=jnp.stack(over), ok=tuple(ok), loss=jnp.sum(r ** 2))
@@ -93,7 +113,7 @@ def residual_problem(names, lims, terms, plist):
     pytree, so the module-level jits of :func:`compiled_steps` see its arrays as
     traced and reuse their compilation), ``args`` the (set-up, params) pairs."""
     fn = jax.tree_util.Partial(residual_fn, names=tuple(names), lims=lims, terms=tuple(terms))
-    return fn, tuple((t.setup, p) for t, p in zip(terms, plist))
+    return fn, tuple((t.setup, t.slow, p) for t, p in zip(terms, plist))
 
 
 def calibration_loss(params: Params, setup, target, weights=LossWeights()):

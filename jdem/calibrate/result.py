@@ -104,8 +104,20 @@ def uncertainty(J, r, u, names, lims, n_fit):
 
 # ----------------------------------------------------------------------------- curves, files
 def fitted_curves(terms, plist, values):
-    """[(history as NumPy, grown set-up)] per term at ``values``."""
-    return [lab.checked_curve(t.setup, material(p, values)) for t, p in zip(terms, plist)]
+    """[(history as NumPy, the term with its set-ups grown as needed)] per term
+    at ``values``: the run at the set-up's rate, or for a term with a slowed
+    set-up the rate-extrapolated curve (:func:`jdem.lab.extrapolated_history`)."""
+    out = []
+    for t, p in zip(terms, plist):
+        prm = material(p, values)
+        hist, setup = lab.checked_curve(t.setup, prm)
+        if t.slow is not None:
+            hist_slow, slow = lab.checked_curve(t.slow, prm)
+            hist = {k: np.asarray(v) for k, v in
+                    lab.extrapolated_history(hist, hist_slow, t.factor).items()}
+            t = t._replace(slow=slow)
+        out.append((hist, t._replace(setup=setup)))
+    return out
 
 
 def merge_curves(terms, start, fit):

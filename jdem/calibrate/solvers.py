@@ -9,8 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jdem import lab
-from jdem.calibrate.problem import residual_problem
+from jdem.calibrate.problem import grow_term, residual_problem
 from jdem.validate import InputError
 
 def _jacobian_impl(fn, u, args, mode):
@@ -72,7 +71,7 @@ def least_squares(terms, plist, u, names, lims, record, history, steps, *, metho
             u, state, _ = step(u, state, args, options, tags)
             aux = state.aux
             if bool(np.any(np.asarray(aux["overflowed"]))):
-                terms = [t._replace(setup=lab.grow(t.setup)) if bool(o) else t
+                terms = [grow_term(t) if bool(o) else t
                          for t, o in zip(terms, np.asarray(aux["overflowed"]))]
                 regrow = True
                 break
@@ -115,7 +114,7 @@ def adam(terms, plist, u, names, lims, record, history, steps, *, jacobian, lear
             vg_fn = functools.partial(compiled_steps()["value_and_grad"], fn)
         loss, aux, g = vg_fn(u, args, jacobian)
         if bool(np.any(np.asarray(aux["overflowed"]))):
-            terms = [t._replace(setup=lab.grow(t.setup)) if bool(o) else t
+            terms = [grow_term(t) if bool(o) else t
                      for t, o in zip(terms, np.asarray(aux["overflowed"]))]
             vg_fn = None
             continue
