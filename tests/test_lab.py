@@ -556,6 +556,17 @@ def test_rate_extrapolation_removes_a_first_order_rate_term():
                                   np.interp(fast["axial_strain"], slow["axial_strain"],
                                             slow["axial_stress"]))
     assert np.max(naive) > 1.001 * a0
+    # past the peak the runs drop at different fractions of their peak strain: no
+    # overshoot, the slower run's drop scaled by the ratio at the peak
+    def dropped(h, at):
+        x = h["axial_strain"] / lab.peak_strain(h["axial_strain"], h["axial_stress"])
+        return dict(h, axial_stress=np.where(x > at, 0.4, 1.0) * h["axial_stress"])
+    out = lab.extrapolated_history(dropped(fast, 1.1), dropped(slow, 1.3))
+    xi = fast["axial_strain"] / (e0 * (1 + 1e4 * v))
+    np.testing.assert_allclose(np.max(out["axial_stress"]), a0, rtol=2e-6)
+    late = xi > 1.31
+    np.testing.assert_allclose(out["axial_stress"][late],
+                               0.4 * a0 * xi[late] * (2 - xi[late]), rtol=0, atol=2e-5 * a0)
 
 
 def test_certificate_estimates_the_distance_to_the_quasi_static_peak():
