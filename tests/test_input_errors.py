@@ -186,3 +186,18 @@ def test_resume_without_a_checkpoint_is_refused(tmp_path):
     with pytest.raises(InputError, match="--resume: no checkpoint"):
         cli._resume_file(tmp_path / "ucs_checkpoint.h5", True)
     assert cli._resume_file(tmp_path / "ucs_checkpoint.h5", False) is None
+
+
+def test_rate_extrapolation_settings_are_checked(tmp_path):
+    """``[fit] extrapolate_rate`` must be true or false; ``rate_factor`` above 1."""
+    from jdem import calibrate
+    from jdem.cli import calibrate_settings
+
+    cfg = tmp_path / "fit.toml"
+    cfg.write_text('[fit]\nextrapolate_rate = "yes"\n')
+    with pytest.raises(jdem.InputError, match=r"fit.extrapolate_rate .*'yes'"):
+        calibrate_settings(cfg)
+    cfg.write_text("[fit]\nextrapolate_rate = true\n")
+    assert calibrate_settings(cfg)["fit"]["extrapolate_rate"] is True
+    with pytest.raises(jdem.InputError, match="rate_factor .* got 1.0"):
+        calibrate.calibrate(None, None, dict(E=3e10), rate_factor=1.0)
