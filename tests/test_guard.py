@@ -102,6 +102,9 @@ def test_batched_flag_that_does_not_match_the_state_is_refused():
                  record_every=100, progress=False)
 
 
+# slow (~95 s): the set-aside member is checked on jdem.run above and in
+# tests/test_calibrate.py::test_ensemble_member_that_diverges_is_isolated
+@pytest.mark.slow
 def test_a_lab_batch_with_a_diverging_member_finishes_the_others():
     """A UCS batch of two identical members, the second with 20 x the time step:
     it is set aside at its first bad step; the first member's curve is bit for

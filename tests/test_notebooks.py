@@ -59,6 +59,8 @@ def _kernel_python(workdir):
     return nb.cells[0].outputs[0]["text"].strip()
 
 
+# slow (~60 s): the sweep itself is tested in tests/test_sweep.py
+@pytest.mark.slow
 def test_sweep_notebook_small(tmp_path):
     assert os.environ.get("JDEM_SMALL") == "1"
     nb = execute_notebook("sweep.ipynb", tmp_path, env={"JDEM_SMALL": "1"})
@@ -90,6 +92,8 @@ def test_kernel_runs_this_environment(tmp_path):
     assert _kernel_python(tmp_path) == sys.prefix
 
 
+# slow (~150 s): the same calibration path runs in tests/test_cli.py
+@pytest.mark.slow
 def test_calibration_notebook_runs(tmp_path):
     execute_notebook("calibration.ipynb", tmp_path)
     assert (tmp_path / "calibration.png").stat().st_size > 0

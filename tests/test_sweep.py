@@ -324,6 +324,8 @@ def one_per_batch(specimen, base, samples):
                     damping=lab.local(ALPHA), **RUN)
 
 
+# slow (~95 s): sharding is also checked over two processes below
+@pytest.mark.slow
 def test_sweep_on_4_devices_matches_1_device(specimen, base, samples, table, four_device_table,
                                              one_per_batch):
     """4 host devices, one member each, give the table of one device with one
