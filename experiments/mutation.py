@@ -5,6 +5,7 @@ wrong operator, comparison or sign?
     python experiments/mutation.py                       # 6 mutants per module
     python experiments/mutation.py --per-module 20 --modules bond contact
     python experiments/mutation.py --list                # the mutants, not run
+    python experiments/mutation.py --all --modules bond  # every site of a module
 
 For each module, every candidate mutation site is collected from its syntax
 tree: an arithmetic operator swapped (+ <-> -, * <-> /), a comparison flipped
@@ -15,16 +16,23 @@ worktree of HEAD) and the module's unit-test files are run there (``pytest -x``,
 one process).  A mutant is *killed* when a test fails (or the run errors or
 times out), *survived* otherwise.  The original sources are never touched.
 
-Writes ``experiments/results/mutation/mutation.md`` (score per module, each
-mutant with its line and outcome) and ``mutation.json``.  Slow (about a minute
-per mutant on 2 cores, mostly compilation): a study run on request, not part of
-the test suite.
+Each outcome is appended to ``experiments/results/mutation/results.jsonl`` as
+soon as it is known, keyed by the module's source hash: a run that is
+interrupted, or a later run with more sites, continues where the last stopped
+(sites already run on the same source are skipped; a changed module starts
+afresh).  ``equivalent.json`` in the same folder names the mutants judged
+equivalent (key ``module | mutation | col C | code line``, value the reason); they are
+left out of the score.  ``mutation.md`` (score per module, each mutant with its
+line and outcome) is written from both after every mutant.  Slow (20-60 s per
+mutant on 2 cores, mostly compilation): a study run on request, not part of the
+test suite.
 """
 from __future__ import annotations
 
 import argparse
 import ast
 import datetime
+import hashlib
 import json
 import pathlib
 import random
@@ -156,10 +164,52 @@ def run_tests(work: pathlib.Path, files, timeout) -> tuple[str, float]:
     return outcome, time.time() - t0
 
 
+def equivalence_key(r) -> str:
+    return f"{r['module']} | {r['mutation']} | col {r['col']} | {r['code']}"
+
+
+def load_results(out: pathlib.Path) -> list:
+    path = out / "results.jsonl"
+    if not path.exists():
+        return []
+    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+
+
+def write_report(out: pathlib.Path, hashes: dict, n_sites: dict, cmd: str):
+    """mutation.md from results.jsonl (current sources only) and equivalent.json."""
+    eq_path = out / "equivalent.json"
+    equivalent = json.loads(eq_path.read_text()) if eq_path.exists() else {}
+    results = [r for r in load_results(out) if hashes.get(r["module"]) == r["source_sha"]]
+    md = ["# Mutation testing of the physics modules", "",
+          f"Last run {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, `{cmd}`, "
+          f"2-core CPU. A mutant is killed when the module's unit tests (`pytest -x`, not "
+          f"slow) fail; mutants named in `equivalent.json` are left out of the score. "
+          f"Outcomes accumulate in `results.jsonl` across runs of the same sources.", "",
+          "| module | sites | run | killed | equivalent | survived | score of non-equivalent |",
+          "|---|---|---|---|---|---|---|"]
+    for mod in sorted({r["module"] for r in results}):
+        rows = [r for r in results if r["module"] == mod]
+        k = sum(r["outcome"].startswith("killed") for r in rows)
+        e = sum((not r["outcome"].startswith("killed")) and equivalence_key(r) in equivalent
+                for r in rows)
+        sv = len(rows) - k - e
+        md.append(f"| {mod} | {n_sites.get(mod, '?')} | {len(rows)} | {k} | {e} | {sv} | "
+                  f"{100 * k / max(k + sv, 1):.0f} % |")
+    md += ["", "| module | line | mutation | outcome | note | code |", "|---|---|---|---|---|---|"]
+    for r in results:
+        note = equivalent.get(equivalence_key(r), "") if not r["outcome"].startswith("killed") \
+            else ""
+        md.append(f"| {r['module']} | {r['line']} | {r['mutation']} | {r['outcome']} | {note} | "
+                  f"`{r['code'][:80].replace('|', '/')}` |")
+    (out / "mutation.md").write_text("\n".join(md) + "\n")
+    return md
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--modules", nargs="+", default=list(TESTS))
     ap.add_argument("--per-module", type=int, default=6)
+    ap.add_argument("--all", action="store_true", help="every site of each module")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--timeout", type=float, default=600.0)
     ap.add_argument("--work", type=pathlib.Path, default=pathlib.Path("/tmp/jdem-mutation"))
@@ -167,54 +217,51 @@ def main(argv=None):
     ap.add_argument("--out", type=pathlib.Path, default=OUT)
     a = ap.parse_args(argv)
     rng = random.Random(a.seed)
-    plan = {}
+    plan, hashes = {}, {}
     for mod in a.modules:
         src = (ROOT / "jdem" / f"{mod}.py").read_text()
+        hashes[mod] = hashlib.sha256(src.encode()).hexdigest()[:16]
         all_sites = sites(src)
-        plan[mod] = (len(all_sites), rng.sample(all_sites, min(a.per_module, len(all_sites))))
+        chosen = all_sites if a.all else rng.sample(all_sites, min(a.per_module, len(all_sites)))
+        plan[mod] = (len(all_sites), chosen)
     if a.list:
         for mod, (n, chosen) in plan.items():
             print(f"{mod}: {n} sites; " + "; ".join(f"line {s[1]}: {s[3]}" for s in chosen))
         return
+    a.out.mkdir(parents=True, exist_ok=True)
+    cmd = "python experiments/mutation.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    done = {(r["module"], r["line"], r["col"], r["mutation"]) for r in load_results(a.out)
+            if hashes.get(r["module"]) == r.get("source_sha")}
+    n_sites = {m: n for m, (n, _) in plan.items()}
     _worktree(a.work)
-    results = []
     try:
         for mod, (n, chosen) in plan.items():
+            todo = [st for st in chosen if (mod, st[1], st[2], st[3]) not in done]
+            print(f"{mod}: {len(chosen) - len(todo)} of {len(chosen)} already run", flush=True)
+            if not todo:
+                continue
             target = a.work / "jdem" / f"{mod}.py"
             original = target.read_text()
             base, t_base = run_tests(a.work, TESTS[mod], a.timeout)
             if base != "survived":
                 raise RuntimeError(f"the tests of {mod} fail without a mutant")
-            for site in chosen:
+            for site in todo:
                 target.write_text(mutate(original, site))
                 outcome, t = run_tests(a.work, TESTS[mod], a.timeout)
                 target.write_text(original)
                 line = original.splitlines()[site[1] - 1].strip()
-                results.append(dict(module=mod, line=site[1], mutation=site[3], code=line,
-                                    outcome=outcome, seconds=round(t, 1)))
+                r = dict(module=mod, line=site[1], col=site[2], mutation=site[3], code=line,
+                         outcome=outcome, seconds=round(t, 1), source_sha=hashes[mod])
+                with open(a.out / "results.jsonl", "a") as f:
+                    f.write(json.dumps(r) + "\n")
+                write_report(a.out, hashes, n_sites, cmd)
                 print(f"{mod}:{site[1]} {site[3]:24s} {outcome:16s} {t:5.0f} s  {line[:70]}",
                       flush=True)
     finally:
         subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(a.work)],
                        capture_output=True)
-    a.out.mkdir(parents=True, exist_ok=True)
-    cmd = "python experiments/mutation.py " + " ".join(sys.argv[1:] if argv is None else argv)
-    (a.out / "mutation.json").write_text(json.dumps(dict(
-        date=datetime.date.today().isoformat(), command=cmd, seed=a.seed,
-        sites={m: n for m, (n, _) in plan.items()}, results=results), indent=1))
-    md = ["# Mutation testing of the physics modules", "",
-          f"{datetime.date.today().isoformat()}, `{cmd}`, 2-core CPU. A mutant is killed when "
-          f"the module's unit tests (`pytest -x`, not slow) fail.", "",
-          "| module | sites | mutants run | killed | score |", "|---|---|---|---|---|"]
-    for mod, (n, _) in plan.items():
-        rows = [r for r in results if r["module"] == mod]
-        k = sum(r["outcome"].startswith("killed") for r in rows)
-        md.append(f"| {mod} | {n} | {len(rows)} | {k} | {100 * k / max(len(rows), 1):.0f} % |")
-    md += ["", "| module | line | mutation | outcome | code |", "|---|---|---|---|---|"]
-    md += [f"| {r['module']} | {r['line']} | {r['mutation']} | {r['outcome']} | "
-           f"`{r['code'][:80].replace('|', '/')}` |" for r in results]
-    (a.out / "mutation.md").write_text("\n".join(md) + "\n")
-    print("\n".join(md[:6 + len(plan)]))
+    md = write_report(a.out, hashes, n_sites, cmd)
+    print("\n".join(md[:8 + len(plan)]))
 
 
 if __name__ == "__main__":
