@@ -90,9 +90,7 @@ def main():
     bounds = dict(E=(10e9, 200e9), nu=(0.0, 0.45), T0=(1e6, 200e6), c0=(1e6, 500e6))
     res = calibrate.calibrate([ucs, bts], [TARGETS_UCS, TARGETS_BTS], start, bounds=bounds,
                               steps=args.steps, out=OUT / "calibration.h5",
-                              require_quasi_static=False,
-                              # the committed results fit the run at --rate
-                              extrapolate_rate=False)
+                              require_quasi_static=False)
     print(calibrate.report(res))
     fitted = material(params, res.values)
     hu, _ = lab.checked_curve(ucs, fitted)

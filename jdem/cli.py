@@ -93,7 +93,7 @@ def calibration_demo(out, small=False):
     setup, params, target, true, start = calibrate.demo_problem(loading_rate=rate)
     res = calibrate.calibrate(setup, target, start, steps=12 if small else 20,
                               progress=True, out=out / "calibration.h5",
-                              require_quasi_static=False, extrapolate_rate=False)
+                              require_quasi_static=False)
     plot.plot_calibration(res, out / "calibration.png", true_values=true)
     print(calibrate.report(res, true))
     print(f"  loss {res.history['loss'][0]:.3g} -> {res.loss:.3g} in {res.steps} iterations "
@@ -332,12 +332,12 @@ CALIBRATE_DEFAULTS = {
     "material": dict(UCS_DEFAULTS["material"]),
     "loading": dict(UCS_DEFAULTS["loading"], max_strain=None),
     "fit": dict(parameters=["E", "strength"], method="lm", steps=20, bounds={},
-                require_quasi_static=True, extrapolate_rate=True),
+                require_quasi_static=True, extrapolate_rate=False),
 }
 CALIBRATE_SMALL = {"specimen": dict(width=0.004, height=0.008, r_min=0.2e-3, r_max=0.35e-3,
                                     seed=2, coordination=4.5),
                    "loading": dict(loading_rate=6.4e-5),
-                   "fit": dict(steps=8, require_quasi_static=False, extrapolate_rate=False)}
+                   "fit": dict(steps=8, require_quasi_static=False)}
 
 
 def calibrate_settings(config_path=None, small=False) -> dict:
@@ -433,10 +433,9 @@ def calibrate_cli(curve, config=None, out="results/calibrate", small=False, prog
     bounds = {n: tuple(b) for n, b in fit["bounds"].items()}
     print(f"  fitting {', '.join(start)} ({fit['method']}, at most {fit['steps']} iterations); "
           f"loading rate {setup.plan.option('loading_rate'):.3g}"
-          + (" and half of it, extrapolated to rate zero" if fit["extrapolate_rate"] else
-             " -- fitted at this rate ([fit] extrapolate_rate = false): the values "
-             "carry its effect")
-          + ("" if fit["require_quasi_static"] else " -- quasi-static check OFF"))
+          + (" and half of it, extrapolated to rate zero" if fit["extrapolate_rate"] else "")
+          + ("" if fit["require_quasi_static"] else
+             " -- quasi-static check OFF: the values describe this loading rate"))
     result = out / "calibration.h5"
     res = calibrate.calibrate(setup, target, start, bounds=bounds or None, method=fit["method"],
                               steps=fit["steps"], progress=progress, out=result,

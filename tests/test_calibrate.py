@@ -313,8 +313,7 @@ def test_calibration_three_parameters_on_the_targets_packing(tmp_path):
     model, params = model_and_params()
     start = dict(E=1.4 * TRUE["E"], strength=0.7 * TRUE["strength"], kappa=1.5 * TRUE["kappa"])
     res = cb.calibrate(model, target_curve(), start, params=params, steps=20, progress=False,
-                       out=tmp_path / "cal.h5", require_quasi_static=False,
-                       extrapolate_rate=False)
+                       out=tmp_path / "cal.h5", require_quasi_static=False)
     print(cb.report(res, TRUE))
     assert res.method == "lm" and res.jacobian == "forward"
     assert res.steps <= 20
@@ -384,7 +383,7 @@ def test_interrupted_calibration_resumes_from_its_checkpoint(tmp_path):
     the saved point, so it does not retrace the uninterrupted fit's path."""
     model, params = model_and_params()
     start = dict(E=1.4 * TRUE["E"])
-    kw = dict(params=params, progress=False, require_quasi_static=False, extrapolate_rate=False)
+    kw = dict(params=params, progress=False, require_quasi_static=False)
     part = cb.calibrate(model, target_curve(), start, steps=1, checkpoint=tmp_path / "ck.h5",
                         **kw)
     assert part.steps == 1 and (tmp_path / "ck.h5").exists()
@@ -424,7 +423,7 @@ def test_extrapolated_fit_recovers_the_strength_the_run_at_the_rate_misses():
     start = dict(strength=0.85 * TRUE["strength"])
     weights = cb.LossWeights(post_peak=0.0)
     kw = dict(params=params, progress=False, require_quasi_static=False, steps=6, weights=weights)
-    plain = cb.calibrate(model, target, start, extrapolate_rate=False, **kw)
+    plain = cb.calibrate(model, target, start, **kw)
     extrap = cb.calibrate(model, target, start, extrapolate_rate=True, **kw)
     err = {k: r.values["strength"] / TRUE["strength"] - 1 for k, r in
            (("plain", plain), ("extrapolated", extrap))}
@@ -455,7 +454,7 @@ def test_adam_with_forward_mode_gradient_lowers_the_loss():
     model, params = model_and_params()
     res = cb.calibrate(model, target_curve(), dict(E=1.4 * TRUE["E"]), params=params,
                        method="adam", steps=3, learning_rate=0.2, progress=False,
-                       require_quasi_static=False, extrapolate_rate=False)
+                       require_quasi_static=False)
     print(res.history)
     assert res.method == "adam" and res.jacobian == "forward" and res.steps == 3
     assert res.history["loss"][-1] < res.history["loss"][0]
@@ -556,8 +555,7 @@ def test_poisson_ratio_from_the_lateral_strain_on_the_targets_packing():
                   lateral_strain=lateral)
     nu = float(params.bond_poisson)
     res = cb.calibrate(model, target, dict(E=1.4 * TRUE["E"], nu=0.7 * nu), params=params,
-                       steps=20, progress=False, require_quasi_static=False,
-                       extrapolate_rate=False)
+                       steps=20, progress=False, require_quasi_static=False)
     print(cb.report(res, dict(E=TRUE["E"], nu=nu)))
     assert res.steps <= 20
     assert abs(res.values["E"] / TRUE["E"] - 1) < 0.01
@@ -598,7 +596,7 @@ def test_recovery_three_parameters_on_a_different_packing():
                           stiffness_margin=2.0)
     start = dict(E=1.4 * TRUE["E"], strength=0.65 * TRUE["strength"], kappa=1.5 * TRUE["kappa"])
     res = cb.calibrate(model, target_curve(), start, steps=20, progress=False,
-                       require_quasi_static=False, extrapolate_rate=False)
+                       require_quasi_static=False)
     print(res.values, res.steps, res.loss)
     assert abs(res.values["E"] / TRUE["E"] - 1) < 0.03
     assert abs(res.values["strength"] / TRUE["strength"] - 1) < 0.05
@@ -625,20 +623,3 @@ def test_fit_model_recovers_an_oscillator_and_reports_what_the_data_do_not_fix()
     assert "unused" in idle.undetermined
     with pytest.raises(InputError, match="outside its bounds"):
         fit_model(curve, data, {"omega": 12.0, "decay": 1.5}, bounds={"omega": (1.0, 5.0)})
-
-
-def test_a_calibration_fits_the_rate_zero_curve_by_default(tmp_path):
-    """A laboratory curve is matched to the model's quasi-static (rate-zero)
-    curve unless asked otherwise: ``calibrate`` and ``jdem calibrate`` extrapolate
-    by default; the smoke configuration (``--small``, an uncertified rate) and a
-    TOML with ``extrapolate_rate = false`` fit the run at the rate."""
-    import inspect
-
-    from jdem.cli import calibrate_settings
-
-    assert inspect.signature(cb.calibrate).parameters["extrapolate_rate"].default is True
-    assert calibrate_settings()["fit"]["extrapolate_rate"] is True
-    assert calibrate_settings(small=True)["fit"]["extrapolate_rate"] is False
-    cfg = tmp_path / "fit.toml"
-    cfg.write_text("[fit]\nextrapolate_rate = false\n")
-    assert calibrate_settings(cfg)["fit"]["extrapolate_rate"] is False

@@ -28,7 +28,7 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
               jacobian="auto", steps=30, rtol=1e-4, atol=1e-8, learning_rate=0.1,
               weights=LossWeights(), tol=1e-8, patience=None, min_improvement=1e-3,
               progress=True, out=None, checkpoint=None, resume=None,
-              require_quasi_static=True, extrapolate_rate=True,
+              require_quasi_static=True, extrapolate_rate=False,
               rate_factor=2.0) -> CalibrationResult:
     """Fit the named parameters of ``start`` to ``target``.
 
@@ -52,16 +52,12 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
                    ``out``); ``resume``: such a file to continue from
     require_quasi_static  certify each set-up at the start values first
                    (:func:`jdem.lab.certify`) and refuse one that is not
-    extrapolate_rate  (default) fit the quasi-static estimate, not the run at
-                   the set-up's rate: every set-up also runs ``rate_factor``
-                   times slower and each residual is extrapolated to rate zero
-                   (:func:`jdem.lab.extrapolated_history`), so the fitted values
-                   describe the rock and not the loading rate.  Costs 1 +
+    extrapolate_rate  fit the quasi-static estimate instead of the run at the
+                   set-up's rate: every set-up also runs ``rate_factor`` times
+                   slower and each residual is extrapolated to rate zero
+                   (:func:`jdem.lab.extrapolated_history`).  Costs 1 +
                    ``rate_factor`` times the run per iteration
-                   (experiments/quasi_static_calibration.py measures what it
-                   buys: a strength 3.73 % low without it).  ``False`` fits the
-                   run at the set-up's rate: right when the target was
-                   simulated at that very rate (the demo, solver tests)
+                   (experiments/quasi_static_calibration.py measures what it buys)
     """
     if method not in METHODS:
         raise InputError(f"method must be one of {METHODS}, got {method!r}")
