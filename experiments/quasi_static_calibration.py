@@ -13,8 +13,8 @@ Part B (calibration): E and strength fitted to the quasi-static reference
 curve from the demo's start (E +40 %, strength -30 %), (a) on the run at the
 default rate (certified at the true values), (b) with ``extrapolate_rate=True``
 from twice the default rate and the default rate (1.5x the cost per iteration of
-(a)), (c) ``calibrate``'s default: extrapolated from the default rate and half of
-it (3x the cost of (a)); float32 (the lab tests' default), at most ``--steps`` iterations, the
+(a)), (c) extrapolated from the default rate and half of it (3x the cost of (a);
+it stalls from this start: default_extrapolation/NOTES.md); float32 (the lab tests' default), at most ``--steps`` iterations, the
 curve weighed up to the peak and the peak (``LossWeights(post_peak=0)``: past the
 first breaks the exact derivatives follow the realised break sequence and stall
 Gauss-Newton from this far a start; with the default weights the fit on the run
@@ -59,7 +59,7 @@ RATES = (1.6e-5, 8e-6, 4e-6, 2e-6, 1e-6)
 #: part B's fits: label, loading rate / the default rate, extrapolate_rate
 FITS = {"a": ("run at the default rate", 1.0, False),
         "b": ("extrapolated from 2x the default rate and half", 2.0, True),
-        "c": ("extrapolated from the default rate and half (calibrate's default)", 1.0, True)}
+        "c": ("extrapolated from the default rate and half", 1.0, True)}
 
 
 def setup_at(spec, rate, precision="float64"):
