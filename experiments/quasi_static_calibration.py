@@ -14,8 +14,8 @@ curve from the demo's start (E +40 %, strength -30 %), (a) on the run at the
 default rate (certified at the true values), (b) with ``extrapolate_rate=True``
 from twice the default rate and the default rate (1.5x the cost per iteration of
 (a)), (c) extrapolated from the default rate and half of it (3x the cost of (a);
-it stalls from this start: default_extrapolation/NOTES.md); float32 (the lab tests' default), at most ``--steps`` iterations, the
-curve weighed up to the peak and the peak (``LossWeights(post_peak=0)``: past the
+it stalls from this start: default_extrapolation/NOTES.md); float32 (the lab
+tests' default), at most ``--steps`` iterations, the curve weighed up to the peak and the peak (``LossWeights(post_peak=0)``: past the
 first breaks the exact derivatives follow the realised break sequence and stall
 Gauss-Newton from this far a start; with the default weights the fit on the run
 at the default rate stopped at E +20 %, strength -40 % after 8 iterations).  The

@@ -10,9 +10,9 @@ PY="${PY:-$ROOT/.venv/bin/python}"
 git -C "$ROOT" worktree remove --force "$WORK" 2>/dev/null || true
 git -C "$ROOT" worktree add --detach "$WORK" HEAD >/dev/null
 cd "$WORK"
-probe() {   # probe NAME TESTFILE PYTHON-EDIT
+probe() {   # probe NAME TESTFILE FILE OLD NEW: OLD (once in FILE) becomes NEW
   echo "== $1 ($2)"
-  "$PY" -c "$3" || { echo "probe edit failed"; exit 1; }
+  "$PY" -c "$edit" "$3" "$4" "$5" || { echo "probe edit failed"; exit 1; }
   git diff --stat | tail -1
   PYTHONPATH="$WORK" "$PY" -m pytest -q -p no:cacheprovider -n 0 "$2" 2>&1 | tail -1
   git checkout -q .
@@ -20,9 +20,10 @@ probe() {   # probe NAME TESTFILE PYTHON-EDIT
 edit='import sys; p, o, n = sys.argv[1:4]
 s = open(p).read(); assert s.count(o) == 1, (p, o); open(p, "w").write(s.replace(o, n))'
 probe "spin dropped from the contact's relative velocity" tests/test_contact_spin.py \
-  "$(printf '%s\n' "import sys; sys.argv[1:] = ['jdem/contact.py', 'relative_velocity(p.vel, p.angvel,', 'relative_velocity(p.vel, 0.0 * p.angvel,']" "$edit")"
+  jdem/contact.py 'relative_velocity(p.vel, p.angvel,' 'relative_velocity(p.vel, 0.0 * p.angvel,'
 probe "contact history copied by row position" tests/test_history_reorder.py \
-  "$(printf '%s\n' "import sys; sys.argv[1:] = ['jdem/neighbors.py', 'contacts.shear[old_row], 0.0)', 'contacts.shear[jnp.minimum(jnp.arange(new_i.shape[0]), size - 1)], 0.0)']" "$edit")"
+  jdem/neighbors.py 'contacts.shear[old_row], 0.0)' \
+  'contacts.shear[jnp.minimum(jnp.arange(new_i.shape[0]), size - 1)], 0.0)'
 probe "max(R1, R2) for the bond section" tests/test_bond_unequal.py \
-  "$(printf '%s\n' "import sys; sys.argv[1:] = ['jdem/bond.py', 'r_min = jnp.minimum(r1, r2)', 'r_min = jnp.maximum(r1, r2)']" "$edit")"
+  jdem/bond.py 'r_min = jnp.minimum(r1, r2)' 'r_min = jnp.maximum(r1, r2)'
 cd "$ROOT" && git worktree remove --force "$WORK"
