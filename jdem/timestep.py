@@ -75,8 +75,11 @@ def _stiffness_sums(state: State, params: Params, config: Config):
         live = b.valid
         bk = jnp.where(live, g.kn + g.ks, 0.0)
         k_tr = k_tr + segment_add(bk, b.i, n) + segment_add(bk, b.j, n)
-        # shear spring at the bar's mid point plus bending and twisting springs (002 eq 4)
-        rot = jnp.where(live, g.ks * g.length**2 / 4 + (g.kn * g.I + g.ks * g.J) / g.area, 0.0)
+        # shear spring at the bar's mid point plus bending and twisting springs (002 eq 4);
+        # a 2D disc turns only about the normal to the plane, which bends the bar:
+        # there is no twist in 2D
+        twist = g.ks * g.J if config.dim == 3 else 0.0
+        rot = jnp.where(live, g.ks * g.length**2 / 4 + (g.kn * g.I + twist) / g.area, 0.0)
         k_rot = k_rot + segment_add(rot, b.i, n) + segment_add(rot, b.j, n)
     return k_tr, k_rot
 
