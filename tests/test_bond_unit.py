@@ -623,6 +623,54 @@ def test_create_bonds_random_3d_matches_brute_force():
     assert none.i.shape == (2,) and not np.asarray(none.valid).any()
 
 
+@pytest.mark.parametrize("dim, lengths, offset", [
+    (2, (40.0, 15.0), -120.0),          # the cloud entirely at negative coordinates
+    (3, (30.0, 12.0, 21.0), 0.0),       # a box of three different lengths: strides differ
+    (3, (20.0, 20.0, 9.0), -55.0),
+])
+def test_create_bonds_across_many_cells_matches_brute_force(dim, lengths, offset):
+    """Radii of order one metre (so the cell edge 2 max(R) + tol is neither tiny nor
+    the whole cloud), a cloud spanning many cells along axes of unequal length,
+    and coordinates away from the origin: the cell-grid search finds exactly the
+    pairs a brute-force search finds."""
+    rng = np.random.default_rng(dim)
+    n = 700
+    pos = offset + rng.uniform(0, 1, (n, dim)) * np.asarray(lengths)
+    rad = rng.uniform(0.5, 1.6, n)
+    parts = make_particles(pos, rad)
+    tol = 0.2
+    bonds = create_bonds(parts, dim, gap_tolerance=tol)
+    gap = np.linalg.norm(pos[:, None] - pos[None], axis=-1) - rad[:, None] - rad[None]
+    ii, jj = np.nonzero(np.triu(gap <= tol, k=1))
+    assert ii.size > 200                     # the case is not empty
+    valid = np.asarray(bonds.valid)
+    np.testing.assert_array_equal(np.asarray(bonds.i)[valid], ii)
+    np.testing.assert_array_equal(np.asarray(bonds.j)[valid], jj)
+
+
+def test_create_bonds_takes_a_gap_equal_to_the_tolerance():
+    """"At most gap_tolerance": discs that touch exactly (gap 0.0 in binary) bond
+    with a tolerance of 0, as in a lattice of touching discs."""
+    parts = make_particles(np.array([[0.0, 0.0], [2.0, 0.0], [5.0, 0.0]]), [1.0, 1.0, 1.0])
+    bonds = create_bonds(parts, 2, gap_tolerance=0.0)
+    valid = np.asarray(bonds.valid)
+    assert valid.sum() == 1
+    assert (int(bonds.i[0]), int(bonds.j[0])) == (0, 1)
+    # the gap 1.0 to the third disc is bonded by a tolerance of exactly 1.0 only
+    assert int(np.sum(create_bonds(parts, 2, gap_tolerance=1.0).valid)) == 2
+    assert int(np.sum(create_bonds(parts, 2, gap_tolerance=0.999).valid)) == 1
+
+
+def test_bonds_for_pairs_refuses_a_particle_bonded_to_itself():
+    from jdem.bond import bonds_for_pairs
+    with pytest.raises(ValueError, match="i < j"):
+        bonds_for_pairs(np.array([0, 2]), np.array([1, 2]), 2)
+    with pytest.raises(ValueError, match="i < j"):
+        bonds_for_pairs(np.array([3]), np.array([1]), 2)
+    ok = bonds_for_pairs(np.array([2, 0]), np.array([3, 1]), 2)
+    assert [(int(a), int(b)) for a, b in zip(ok.i[:2], ok.j[:2])] == [(0, 1), (2, 3)]
+
+
 def test_energy_damage_stats():
     dim = 3
     bonds, parts, params = setup(dim, bond_capacity=2)
