@@ -349,7 +349,7 @@ def test_calibration_file_layout_and_version_1_files(tmp_path):
         converged=True, params=params, curves=dict(strain=np.arange(3.0),
                                                    fit_stress=np.arange(3.0) * 2),
         wall_time=1.0, std_errors=dict(E=1e8), intervals=dict(E=(2.9e10, 3.3e10)),
-        correlation=np.eye(1), poorly_determined={}, warnings=["w"])
+        correlation=np.eye(1), poorly_determined={}, warnings=["w"], stop="converged")
     cb.save_calibration(tmp_path / "c.h5", res)
     with h5py.File(tmp_path / "c.h5", "r") as f:
         assert f["attrs/fit"].attrs["E"] == 3.1e10
@@ -364,6 +364,7 @@ def test_calibration_file_layout_and_version_1_files(tmp_path):
                            wall_time=1.0, method="lm", jacobian="forward", names=["E"],
                            diverged=[], warnings=["w"]))
     old = cb.load_calibration(v1)
+    assert back["stop"] == "converged" and old["stop"] == ""      # version 1 had none
     for got in (back, old):
         assert got["values"] == res.values and got["start"] == res.start
         assert got["intervals"] == res.intervals and got["std_errors"] == res.std_errors
@@ -387,6 +388,7 @@ def test_interrupted_calibration_resumes_from_its_checkpoint(tmp_path):
     part = cb.calibrate(model, target_curve(), start, steps=1, checkpoint=tmp_path / "ck.h5",
                         **kw)
     assert part.steps == 1 and (tmp_path / "ck.h5").exists()
+    assert part.stop == "steps" and not part.converged
     saved = cb.load_calibration(tmp_path / "ck.h5")
     assert saved["steps"] == 1 and saved["values"] == pytest.approx(part.values)
     runs = [cb.calibrate(model, target_curve(), start, steps=3, resume=tmp_path / "ck.h5", **kw)
@@ -400,6 +402,22 @@ def test_interrupted_calibration_resumes_from_its_checkpoint(tmp_path):
     assert runs[0].values == runs[1].values
     np.testing.assert_array_equal(runs[0].history["loss"], runs[1].history["loss"])
     assert abs(runs[0].values["E"] / TRUE["E"] - 1) < abs(start["E"] / TRUE["E"] - 1)
+
+
+def test_a_fit_without_progress_stops_as_stalled_not_converged():
+    """A fit that asks for a 99.9 % fall of the loss per iteration (patience 1)
+    stops on the first accepted iteration that falls short: ``stop`` is "stalled",
+    ``converged`` False, and a warning says so (a stall used to be reported as
+    converged)."""
+    model, params = model_and_params()
+    with pytest.warns(UserWarning, match="stalled"):
+        res = cb.calibrate(model, target_curve(), dict(E=1.4 * TRUE["E"]), params=params,
+                           steps=6, patience=1, min_improvement=0.999, progress=False,
+                           require_quasi_static=False)
+    print(res.history["loss"], res.stop)
+    assert res.stop == "stalled" and not res.converged and res.steps < 6
+    assert any("stalled" in w for w in res.warnings)
+    assert "stalled" in cb.report(res)
 
 
 @pytest.mark.slow

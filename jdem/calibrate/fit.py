@@ -13,7 +13,7 @@ from jdem import lab
 from jdem.calibrate.problem import make_terms, n_data, peakless, residual_problem
 from jdem.calibrate.result import (CalibrationResult, fitted_curves, load_calibration,
                                    merge_curves, partial_result, save_calibration, uncertainty)
-from jdem.calibrate.solvers import adam, jacobian_at, least_squares
+from jdem.calibrate.solvers import MAX_REJECTED, adam, jacobian_at, least_squares
 from jdem.calibrate.transform import bounds_for, to_internal, to_value
 from jdem.materials import check_names, material
 from jdem.targets import LossWeights
@@ -44,9 +44,10 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
     steps          at most this many iterations
     rtol, atol     the least-squares solvers' tolerances (on u and on the loss)
     learning_rate  Adam's step in u (cosine decay to 5 % over ``steps``)
-    tol, patience  stop when the loss falls below ``tol``, or has not improved by
-                   a fraction ``min_improvement`` for ``patience`` iterations
-                   (default 3 for the least-squares solvers, 20 for Adam)
+    tol, patience  stop when the loss falls below ``tol`` (``stop`` "converged"),
+                   or has not improved by a fraction ``min_improvement`` for
+                   ``patience`` accepted iterations (default 3 for the least-squares
+                   solvers, 20 for Adam; ``stop`` "stalled", ``converged`` False)
     out            HDF5 path for the result (:func:`save_calibration`)
     checkpoint     HDF5 path written after every iteration (default: next to
                    ``out``); ``resume``: such a file to continue from
@@ -108,7 +109,7 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
 
         bar = tqdm(total=steps, initial=min(done, steps), unit="it",
                    desc=f"calibrate ({method}, {jacobian} Jacobian)", leave=False)
-    diverged, converged = [], False
+    diverged, stop = [], "steps"
     best = (min(history["loss"]) if history["loss"] else np.inf, dict(values0))
 
     def record(u_now, loss, ok):
@@ -131,7 +132,7 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
 
     try:
         stepper = adam if method == "adam" else least_squares
-        converged, terms = stepper(terms, plist, u, names, lims, record, history,
+        stop, terms = stepper(terms, plist, u, names, lims, record, history,
                                    steps - done, method=method, jacobian=jacobian, rtol=rtol,
                                    atol=atol, learning_rate=learning_rate, tol=tol,
                                    patience=patience, min_improvement=min_improvement)
@@ -145,13 +146,20 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
     std, intervals, corr, why = uncertainty(J, r, np.asarray(ub), names, lims, n_points)
     curves1 = fitted_curves(terms, plist, best[1])
     doubts = peakless(terms, [h for h, _ in curves1])
+    if stop == "stalled":
+        doubts = [f"the fit stalled after {len(history['loss'])} iterations (loss "
+                  f"{best[0]:.3g}): no improvement by {min_improvement:g} over {patience} "
+                  f"iterations" + ("" if method == "adam" else
+                                   f" or {MAX_REJECTED} rejected steps in a row") +
+                  "; the point may not be a minimum: try other start values"] + doubts
     for msg in doubts:
         warnings.warn(msg, stacklevel=2)
     curves = merge_curves(terms, curves0, curves1)
     fitted = material(plist[0], best[1])
     res = CalibrationResult(values=best[1], loss=best[0], start=dict(start),
                             history={kk: np.asarray(v) for kk, v in history.items()},
-                            steps=len(history["loss"]), converged=converged, params=fitted,
+                            steps=len(history["loss"]), converged=stop == "converged",
+                            stop=stop, params=fitted,
                             curves=curves, wall_time=time.time() - t0, method=method,
                             jacobian=jacobian, std_errors=std, intervals=intervals,
                             correlation=corr, poorly_determined=why, diverged=diverged,

@@ -20,6 +20,8 @@ class CalibrationResult(NamedTuple):
     start         the starting values
     history       ``loss`` (S,) and ``<name>`` (S,) per iteration (the accepted point)
     steps         iterations; ``converged``: the solver's tolerance (or ``tol``) was met
+    stop          why it stopped: "converged", "stalled" (no progress: ``converged``
+                  False, and a warning) or "steps" (the iteration budget spent)
     params        ``Params`` with the fitted values
     curves        ``target_strain``, ``target_stress``, ``strain``, ``start_stress``,
                   ``fit_stress`` of the first curve target (members x records for
@@ -51,6 +53,7 @@ class CalibrationResult(NamedTuple):
     poorly_determined: dict = {}
     diverged: list = []
     warnings: list = []
+    stop: str = ""
 
 
 def uncertainty(J, r, u, names, lims, n_fit):
@@ -151,7 +154,7 @@ def save_calibration(path, res: CalibrationResult):
     parameter per iteration) and ``curves``, the dataset ``correlation``;
     attribute groups ``fit``, ``start``, ``stderr``, ``ci95`` (lo, hi) and
     ``undetermined`` (name -> why), and root attributes ``loss``, ``steps``,
-    ``converged``, ``wall_time``, ``method``, ``jacobian``, ``names``,
+    ``converged``, ``stop``, ``wall_time``, ``method``, ``jacobian``, ``names``,
     ``diverged``, ``warnings``."""
     history = {"iterations": dict(res.history), "curves": dict(res.curves)}
     if np.size(res.correlation):
@@ -160,7 +163,7 @@ def save_calibration(path, res: CalibrationResult):
              "stderr": dict(res.std_errors),
              "ci95": {k: list(v) for k, v in res.intervals.items()},
              "undetermined": dict(res.poorly_determined)}
-    attrs.update(loss=res.loss, steps=res.steps, converged=res.converged,
+    attrs.update(loss=res.loss, steps=res.steps, converged=res.converged, stop=res.stop,
                  wall_time=res.wall_time, method=res.method, jacobian=res.jacobian,
                  names=list(res.values), diverged=[list(d) for d in res.diverged],
                  warnings=list(res.warnings))
@@ -168,7 +171,7 @@ def save_calibration(path, res: CalibrationResult):
 
 
 def load_calibration(path) -> dict:
-    """``{values, start, loss, steps, converged, history, curves, params, method,
+    """``{values, start, loss, steps, converged, stop, history, curves, params, method,
     jacobian, std_errors, intervals, correlation, poorly_determined, warnings}`` from
     :func:`save_calibration` (or a checkpoint); files of format version 1 (flat
     names with ``fit_`` / ``iter_`` ... prefixes) load too."""
@@ -188,6 +191,7 @@ def load_calibration(path) -> dict:
     return dict(values={n: float(a["fit"][n]) for n in names},
                 start={k: float(v) for k, v in a["start"].items()},
                 loss=float(a["loss"]), steps=int(a["steps"]), converged=bool(a["converged"]),
+                stop=str(a.get("stop", "")),
                 method=a.get("method"), jacobian=a.get("jacobian"),
                 warnings=list(a.get("warnings", [])),
                 std_errors={k: float(v) for k, v in a["stderr"].items()},
@@ -203,7 +207,8 @@ def report(res: CalibrationResult, true_values=None) -> str:
     """A few lines: each fitted value with its standard error and 95 % interval,
     and the parameters the data leave undetermined."""
     lines = [f"{res.method}, {res.jacobian}-mode Jacobian: loss {res.loss:.3g} after "
-             f"{res.steps} iterations ({res.wall_time:.0f} s)"]
+             f"{res.steps} iterations ({res.wall_time:.0f} s)"
+             + (f", {res.stop}" if res.stop else "")]
     for n, v in res.values.items():
         se = res.std_errors.get(n, float("nan"))
         lo, hi = res.intervals.get(n, (float("nan"), float("nan")))

@@ -46,9 +46,24 @@ def compiled_steps():
         value_and_grad=eqx.filter_jit(_value_and_grad_impl))
 
 
+#: why a fit stopped: the solver's criterion (or ``tol``) met; no improvement by
+#: ``min_improvement`` over ``patience`` accepted iterations, or ``MAX_REJECTED``
+#: rejected steps in a row; the iteration budget spent
+STOPS = ("converged", "stalled", "steps")
+#: consecutive rejected Levenberg-Marquardt steps after which a fit counts as stalled
+#: (each rejection shrinks the trust region; ten in a row leave it far below the
+#: parameters' scale, so the linearised model no longer predicts the loss)
+MAX_REJECTED = 10
+
+
 def least_squares(terms, plist, u, names, lims, record, history, steps, *, method, jacobian,
                    rtol, atol, tol, patience, min_improvement, **_):
-    """Levenberg-Marquardt / Gauss-Newton (optimistix), one host step per iteration."""
+    """Levenberg-Marquardt / Gauss-Newton (optimistix), one host step per iteration.
+
+    Returns ``(stop, terms)``, ``stop`` one of :data:`STOPS`.  An iteration whose
+    trial step the solver rejects keeps the point and its loss; it counts towards
+    ``MAX_REJECTED``, not towards ``patience`` (a rejection is the trust region
+    shrinking, the normal course of Levenberg-Marquardt)."""
     import optimistix as optx
 
     solver = (optx.LevenbergMarquardt if method == "lm" else optx.GaussNewton)(rtol=rtol,
@@ -56,6 +71,7 @@ def least_squares(terms, plist, u, names, lims, record, history, steps, *, metho
     options = dict(jac="fwd" if jacobian == "forward" else "bwd")
     tags = frozenset()
     stall, last = 0, (min(history["loss"]) if history["loss"] else np.inf)
+    rejected = 0
     k = 0
     while k < steps:
         fn, args = residual_problem(names, lims, terms, plist)
@@ -68,6 +84,7 @@ def least_squares(terms, plist, u, names, lims, record, history, steps, *, metho
         terminate = functools.partial(compiled["terminate"], solver, fn)
         regrow = False
         while k < steps:
+            u_before = np.asarray(u)
             u, state, _ = step(u, state, args, options, tags)
             aux = state.aux
             if bool(np.any(np.asarray(aux["overflowed"]))):
@@ -85,16 +102,22 @@ def least_squares(terms, plist, u, names, lims, record, history, steps, *, metho
                                  "change them or the time step")
             record(u, loss, aux["ok"])
             k += 1
-            stall = 0 if loss < last * (1.0 - min_improvement) else stall + 1
-            last = min(last, loss)
+            # the first iteration evaluates the start point, which is accepted
+            accepted = k == 1 or not np.array_equal(u_before, np.asarray(u))
+            if accepted:
+                rejected = 0
+                stall = 0 if loss < last * (1.0 - min_improvement) else stall + 1
+                last = min(last, loss)
+            else:
+                rejected += 1
             done, _result = terminate(u, state, args, options, tags)
             if bool(done) or loss < tol:
-                return True, terms
-            if stall >= patience:
-                return True, terms
+                return "converged", terms
+            if stall >= patience or rejected >= MAX_REJECTED:
+                return "stalled", terms
         if not regrow:
             break
-    return False, terms
+    return "steps", terms
 
 
 def adam(terms, plist, u, names, lims, record, history, steps, *, jacobian, learning_rate,
@@ -126,11 +149,13 @@ def adam(terms, plist, u, names, lims, record, history, steps, *, jacobian, lear
         k += 1
         stall = 0 if loss < last * (1.0 - min_improvement) else stall + 1
         last = min(last, loss)
-        if loss < tol or stall >= patience:
-            return True, terms
+        if loss < tol:
+            return "converged", terms
+        if stall >= patience:
+            return "stalled", terms
         updates, state = opt.update(g, state, u)
         u = optax.apply_updates(u, updates)
-    return False, terms
+    return "steps", terms
 
 
 def _value_and_grad_impl(fn, u, args, mode):
