@@ -6,6 +6,7 @@ wrong operator, comparison or sign?
     python experiments/mutation.py --per-module 20 --modules bond contact
     python experiments/mutation.py --list                # the mutants, not run
     python experiments/mutation.py --all --modules bond  # every site of a module
+    python experiments/mutation.py --all --modules bond --rerun-survivors  # after new tests
 
 For each module, every candidate mutation site is collected from its syntax
 tree: an arithmetic operator swapped (+ <-> -, * <-> /), a comparison flipped
@@ -91,7 +92,9 @@ def sites(source: str) -> list:
             out.append(("neg", line, node.col_offset, "drop unary minus"))
         elif isinstance(node, ast.Attribute) and node.attr in _CALLS:
             out.append(("call", line, node.col_offset, f"{node.attr} -> {_CALLS[node.attr]}"))
-    return sorted(out, key=lambda s: (s[1], s[2], s[0]))
+    # nested nodes can share a position and an operator (a * b * c): the mutation
+    # hits the first, so such a site is one mutant
+    return sorted(set(out), key=lambda s: (s[1], s[2], s[0], s[3]))
 
 
 class _Mutate(ast.NodeTransformer):
@@ -169,10 +172,18 @@ def equivalence_key(r) -> str:
 
 
 def load_results(out: pathlib.Path) -> list:
+    """The latest outcome of each mutant (module, line, col, mutation, source) in
+    ``results.jsonl``, in the order first run: a mutant re-run after new tests
+    (``--rerun-survivors``) keeps its place and takes its new outcome."""
     path = out / "results.jsonl"
     if not path.exists():
         return []
-    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+    latest = {}
+    for x in path.read_text().splitlines():
+        if x.strip():
+            r = json.loads(x)
+            latest[(r["module"], r["line"], r["col"], r["mutation"], r["source_sha"])] = r
+    return list(latest.values())
 
 
 def write_report(out: pathlib.Path, hashes: dict, n_sites: dict, cmd: str):
@@ -213,6 +224,8 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--timeout", type=float, default=600.0)
     ap.add_argument("--work", type=pathlib.Path, default=pathlib.Path("/tmp/jdem-mutation"))
+    ap.add_argument("--rerun-survivors", action="store_true",
+                    help="run again the survivors not judged equivalent (after new tests)")
     ap.add_argument("--list", action="store_true")
     ap.add_argument("--out", type=pathlib.Path, default=OUT)
     a = ap.parse_args(argv)
@@ -230,8 +243,12 @@ def main(argv=None):
         return
     a.out.mkdir(parents=True, exist_ok=True)
     cmd = "python experiments/mutation.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    eq_path = a.out / "equivalent.json"
+    equivalent = json.loads(eq_path.read_text()) if eq_path.exists() else {}
     done = {(r["module"], r["line"], r["col"], r["mutation"]) for r in load_results(a.out)
-            if hashes.get(r["module"]) == r.get("source_sha")}
+            if hashes.get(r["module"]) == r.get("source_sha")
+            and not (a.rerun_survivors and r["outcome"] == "survived"
+                     and equivalence_key(r) not in equivalent)}
     n_sites = {m: n for m, (n, _) in plan.items()}
     _worktree(a.work)
     try:

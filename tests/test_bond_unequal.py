@@ -310,6 +310,33 @@ def test_isolated_pair_is_in_moment_balance(dim, r1, r2):
 
 @pytest.mark.parametrize("r1, r2", RADII)
 @pytest.mark.parametrize("dim", [2, 3])
+def test_tension_softens_and_breaks_at_the_limit_strain(dim, r1, r2):
+    """Uniaxial opening at DSTRAIN per step of a bar of length R1 + R2 = 0.8 m
+    (strains are u_n / L): the stress peaks at T0 at the strain T0 / E, falls on
+    the line T0 (1 - (eps - T0 / E) / (eps_lim - T0 / E)) (002 eq 6, 7 with
+    eq 10) and the bond breaks in tension (mode 1) at eps = eps_lim."""
+    bonds, parts, params = setup(dim, r1, r2)
+    a, length, *_ = section(dim, r1, r2)
+    n = int(1.1e-3 / DSTRAIN)
+    _, (hb, _, _, _) = drive(bonds, parts, params, dim,
+                             prog(n, DSTRAIN * length / DT, 0.0, rot(dim)), n)
+    stress = -np.asarray(hb.normal_force)[:, 0] / a
+    eps = DSTRAIN * np.arange(1, n + 1)
+    np.testing.assert_allclose(np.asarray(hb.u_n)[:, 0] / length, eps, rtol=1e-9)
+    kp = int(np.argmax(stress))
+    np.testing.assert_allclose(stress[kp], T0, rtol=1e-9)
+    assert abs(eps[kp] / (T0 / E) - 1) < 2e-3
+    broken = np.asarray(hb.broken)[:, 0]
+    kb = int(np.argmax(broken))
+    assert broken[kb] and not broken[kb - 1] and int(hb.break_mode[-1, 0]) == 1
+    assert abs(eps[kb] / EPS_LIM - 1) < 2e-3
+    soft = np.arange(kp + 1, kb)
+    line = T0 * (1 - (eps[soft] - T0 / E) / (EPS_LIM - T0 / E))
+    assert np.max(np.abs(stress[soft] - line)) < 2e-3 * T0
+
+
+@pytest.mark.parametrize("r1, r2", RADII)
+@pytest.mark.parametrize("dim", [2, 3])
 def test_shear_strength_under_tension_and_shear_break(dim, r1, r2):
     """Direct shear under sigma_t = 1 MPa of tension: the peak shear stress is the
     Mohr-Coulomb value c0 - sigma_t tan(phi) = 2.4226 MPa (eq 8, F_n < 0), the

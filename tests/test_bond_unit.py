@@ -253,6 +253,64 @@ def test_direct_shear(dim):
     np.testing.assert_allclose(np.linalg.norm(f_up - (f_up @ nv) * nv), resid * a, rtol=1e-9)
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_brittle_bond_breaks_in_shear_at_its_peak(dim):
+    """gamma_lim = 0 (perfectly brittle in shear, 002 eq 10): the bond breaks in
+    shear (mode 2) on the step its shear stress reaches c0 + sigma tan(phi), and
+    slides at the residual sigma tan(phi) from the next step on."""
+    bonds, parts, params = setup(dim, bond_shear_strain=0.0)
+    n_comp = 600
+    n_shear = int(1.5e-3 / DSTRAIN)
+    _, (hb, _, _, _) = jax.jit(lambda prm: drive(bonds, parts, prm, dim,
+                                                 shear_kin(dim, n_comp),
+                                                 n_comp + n_shear))(params)
+    a = area(dim)
+    sig = 3e6
+    tau = np.linalg.norm(np.asarray(hb.shear_force)[:, 0], axis=-1)[n_comp:] / a
+    broken = np.asarray(hb.broken)[n_comp:, 0]
+    gam = DSTRAIN * np.arange(1, n_shear + 1)
+    peak = C0 + sig * TANPHI
+    kb = int(np.argmax(broken))
+    assert broken[kb] and not broken[kb - 1] and broken[-1]
+    assert int(hb.break_mode[-1, 0]) == 2 and float(hb.beta[-1, 0]) == 1.0
+    # the break step is the first whose elastic trial stress G gamma reaches the peak
+    assert kb == int(np.argmax(G * gam >= peak))
+    assert abs(tau[kb - 1] / peak - 1) < 2 * DSTRAIN * G / peak
+    np.testing.assert_allclose(tau[kb + 1:], sig * TANPHI, rtol=1e-9)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_bond_dashpots_oppose_the_relative_velocity(dim):
+    """Params.bond_damping zeta: the bond adds -2 zeta sqrt(m* K_n) v_n n - 2 zeta
+    sqrt(m* K_s) v_s on the upper particle (000 eq 3-1 with the reduced mass m*
+    = m1 m2 / (m1 + m2)), the opposite on the lower one, and stores nothing: the
+    difference to the undamped bond under the same motion is exactly that force."""
+    zeta = 0.3
+    bonds, parts, params = setup(dim)
+    damped = params._replace(bond_damping=jnp.asarray(zeta))
+    t = tangent(dim, jnp.zeros(dim).at[axis(dim)].set(1.0))
+    v_n, v_s = 2e-7 * L / DT, -1.3e-7 * L / DT
+    v = jnp.zeros(dim).at[axis(dim)].set(v_n) + v_s * t
+    kin = lambda k, pos: (upper_vel(dim, v), zeros_rot(dim))
+    run = jax.jit(lambda prm: drive(bonds, parts, prm, dim, kin, 5))
+    (b0, _), (_, f0, t0, pos) = run(params)
+    (b1, _), (_, f1, t1, _) = run(damped)
+    m = np.asarray(parts.mass)
+    m_red = m[0] * m[1] / (m[0] + m[1])
+    g = bond_geometry(bonds, parts, params, dim)
+    c_n = 2 * zeta * np.sqrt(m_red * float(g.kn[0]))
+    c_s = 2 * zeta * np.sqrt(m_red * float(g.ks[0]))
+    d = np.asarray(pos)[:, 1] - np.asarray(pos)[:, 0]
+    nv = d / np.linalg.norm(d, axis=1, keepdims=True)
+    vn = nv @ np.asarray(v)
+    expect = -(c_n * vn[:, None] * nv + c_s * (np.asarray(v)[None] - vn[:, None] * nv))
+    diff = np.asarray(f1) - np.asarray(f0)
+    np.testing.assert_allclose(diff[:, 1], expect, rtol=1e-6, atol=1e-12 * c_n * abs(v_n))
+    np.testing.assert_allclose(diff[:, 0], -expect, rtol=1e-6, atol=1e-12 * c_n * abs(v_n))
+    for name in ("normal_force", "shear_force", "u_n", "u_s"):
+        np.testing.assert_array_equal(getattr(b1, name), getattr(b0, name))
+
+
 # --------------------------------------------------------------------------- bending / twist
 
 def ineq11(fn, fs_mag, mn_mag, ms_mag, dim):
@@ -263,16 +321,25 @@ def ineq11(fn, fs_mag, mn_mag, ms_mag, dim):
             | (fs_mag / a + mn_mag / j * R >= fn / a * TANPHI + C0))
 
 
+@pytest.mark.parametrize("pre", [0.0, 0.5, -0.5])
 @pytest.mark.parametrize("dim", [2, 3])
-def test_bending_and_moment_cutoff(dim):
+def test_bending_and_moment_cutoff(dim, pre):
+    """Bending by a rotation of the upper particle, after an axial pre-load of
+    ``pre`` T0 (tension positive): ineq 11's tension branch -F_n / A_c + |M| R / I
+    >= T0 cuts the moment at |M| R / I = (1 - pre) T0, i.e. at theta = (1 - pre)
+    x 6e-4."""
     bonds, parts, params = setup(dim)
     dth = 7.3e-7 * np.pi / 3        # rotation per step, not commensurate with the limit
     omega = dth / DT
     w_up = omega if dim == 2 else jnp.array([omega, 0.0, 0.0])
-    nsteps = 1200
+    n_pre = int(round(abs(pre) * T0 / E / DSTRAIN))
+    nsteps = n_pre + 1800
+    v_pre = jnp.zeros(dim).at[axis(dim)].set(np.sign(pre) * DSTRAIN * L / DT)
 
     def kin(k, pos):
-        return jnp.zeros((2, dim)), zeros_rot(dim).at[1].set(w_up)
+        loading = k < n_pre
+        vel = jnp.where(loading, upper_vel(dim, v_pre), jnp.zeros((2, dim)))
+        return vel, jnp.where(loading, zeros_rot(dim), zeros_rot(dim).at[1].set(w_up))
 
     run = jax.jit(lambda prm: drive(bonds, parts, prm, dim, kin, nsteps))
     _, (hb, force, torque, pos) = run(params)
@@ -280,7 +347,7 @@ def test_bending_and_moment_cutoff(dim):
     kn = E * a / L
     i_m = np.pi * (2 * R) ** 4 / 64
     slope = kn * i_m / a            # bending moment per radian (002 eq 4)
-    theta = dth * np.arange(1, nsteps + 1)
+    theta = dth * np.clip(np.arange(1, nsteps + 1) - n_pre, 0, None)
     bend = np.asarray(hb.bend)[:, 0]
     bend_x = bend if dim == 2 else bend[:, 0]
     lost = np.asarray(hb.moment_lost)[:, 0]
@@ -296,7 +363,10 @@ def test_bending_and_moment_cutoff(dim):
     met = ineq11(fn, fs_mag, np.abs(mn), np.abs(trial), dim)
     assert met.any()
     k_star = int(np.argmax(met))
-    assert 0.5e-3 < theta[k_star] < 0.7e-3          # -F_n = 0: |M| R / I = T0 at theta = 6e-4
+    # |M| R / I = T0 at theta = 6e-4 with F_n = 0; the pre-load's stress adds to it
+    np.testing.assert_allclose(-fn[n_pre - 1], pre * T0 * area(dim), rtol=1e-6) if n_pre \
+        else None
+    assert abs(theta[k_star] / ((1 - pre) * 6e-4) - 1) < 0.03
     np.testing.assert_array_equal(lost, np.arange(nsteps) >= k_star)
     assert np.all(bend[k_star:] == 0) and np.all(mn == 0)
 
@@ -309,9 +379,9 @@ def test_bending_and_moment_cutoff(dim):
     f = np.asarray(force)
     t = np.asarray(torque)
     m_vec = bend
-    r1 = np.zeros(dim)
-    r1[axis(dim)] = R
-    cr = (lambda r, v: r[0] * v[..., 1] - r[1] * v[..., 0]) if dim == 2 else \
+    # the contact point halves the current centre line (equal radii)
+    r1 = 0.5 * (np.asarray(pos)[:, 1] - np.asarray(pos)[:, 0])
+    cr = (lambda r, v: r[..., 0] * v[..., 1] - r[..., 1] * v[..., 0]) if dim == 2 else \
         (lambda r, v: np.cross(r, v))
     np.testing.assert_allclose(t[:, 0], cr(r1, f[:, 0]) + m_vec, rtol=1e-10, atol=1e-3)
     np.testing.assert_allclose(t[:, 1], cr(-r1, f[:, 1]) - m_vec, rtol=1e-10, atol=1e-3)
@@ -669,6 +739,24 @@ def test_bonds_for_pairs_refuses_a_particle_bonded_to_itself():
         bonds_for_pairs(np.array([3]), np.array([1]), 2)
     ok = bonds_for_pairs(np.array([2, 0]), np.array([3, 1]), 2)
     assert [(int(a), int(b)) for a, b in zip(ok.i[:2], ok.j[:2])] == [(0, 1), (2, 3)]
+
+
+def test_bond_stats_counts_breaks_by_mode_over_valid_rows():
+    """bond_stats on 4 bonds (capacity 8): one broken in tension, one in shear,
+    a padding row marked broken that must not count: fracture degree 2 / 4."""
+    pos = np.array([[x, 0.0] for x in range(5)], float)
+    parts = make_particles(pos, np.full(5, 0.5))
+    b = create_bonds(parts, 2, gap_tolerance=1e-6, capacity=8)
+    assert int(b.valid.sum()) == 4
+    broken = np.zeros(8, bool)
+    broken[[0, 2, 6]] = True                   # row 6 is padding
+    mode = np.zeros(8, np.int32)
+    mode[[0, 2, 6]] = [1, 2, 1]
+    st = bond_stats(b._replace(broken=jnp.asarray(broken), break_mode=jnp.asarray(mode)))
+    assert int(st["n_bonds"]) == 4 and int(st["n_broken"]) == 2
+    assert int(st["n_tension"]) == 1 and int(st["n_shear"]) == 1
+    assert float(st["fracture_degree"]) == 0.5
+    assert float(bond_stats(jax.tree_util.tree_map(lambda a: a[4:], b))["fracture_degree"]) == 0
 
 
 def test_energy_damage_stats():
