@@ -52,7 +52,7 @@ TESTS = {
     "damping": ["tests/test_damping_timestep.py"],
     "timestep": ["tests/test_damping_timestep.py", "tests/test_input_errors.py"],
     "kinematics": ["tests/test_contact_spin.py", "tests/test_bond_unequal.py"],
-    "walls": ["tests/test_contact_laws.py", "tests/test_contact_spin.py"],
+    "walls": ["tests/test_contact_laws.py", "tests/test_contact_spin.py", "tests/test_engine.py"],
     "neighbors": ["tests/test_neighbors.py", "tests/test_history_reorder.py"],
     "integrate": ["tests/test_engine.py", "tests/test_guard.py"],
 }
