@@ -7,6 +7,7 @@ wrong operator, comparison or sign?
     python experiments/mutation.py --list                # the mutants, not run
     python experiments/mutation.py --all --modules bond  # every site of a module
     python experiments/mutation.py --all --modules bond --rerun-survivors  # after new tests
+    python experiments/mutation.py --report              # mutation.md from the outcomes so far
 
 For each module, every candidate mutation site is collected from its syntax
 tree: an arithmetic operator swapped (+ <-> -, * <-> /), a comparison flipped
@@ -54,7 +55,7 @@ TESTS = {
     "kinematics": ["tests/test_contact_spin.py", "tests/test_bond_unequal.py"],
     "walls": ["tests/test_contact_laws.py", "tests/test_contact_spin.py", "tests/test_engine.py"],
     "neighbors": ["tests/test_neighbors.py", "tests/test_history_reorder.py"],
-    "integrate": ["tests/test_engine.py", "tests/test_guard.py"],
+    "integrate": ["tests/test_integrate.py", "tests/test_engine.py", "tests/test_guard.py"],
 }
 
 _BINOPS = {ast.Add: ast.Sub, ast.Sub: ast.Add, ast.Mult: ast.Div, ast.Div: ast.Mult}
@@ -227,16 +228,25 @@ def main(argv=None):
     ap.add_argument("--rerun-survivors", action="store_true",
                     help="run again the survivors not judged equivalent (after new tests)")
     ap.add_argument("--list", action="store_true")
+    ap.add_argument("--report", action="store_true",
+                    help="only write mutation.md from the outcomes recorded so far")
     ap.add_argument("--out", type=pathlib.Path, default=OUT)
     a = ap.parse_args(argv)
     rng = random.Random(a.seed)
-    plan, hashes = {}, {}
-    for mod in a.modules:
+    plan, hashes, n_sites = {}, {}, {}
+    for mod in TESTS:             # every module's current source, for the report
         src = (ROOT / "jdem" / f"{mod}.py").read_text()
         hashes[mod] = hashlib.sha256(src.encode()).hexdigest()[:16]
         all_sites = sites(src)
-        chosen = all_sites if a.all else rng.sample(all_sites, min(a.per_module, len(all_sites)))
-        plan[mod] = (len(all_sites), chosen)
+        n_sites[mod] = len(all_sites)
+        if mod in a.modules:
+            chosen = all_sites if a.all else rng.sample(all_sites,
+                                                        min(a.per_module, len(all_sites)))
+            plan[mod] = (len(all_sites), chosen)
+    if a.report:
+        print("\n".join(write_report(a.out, hashes, n_sites, "python experiments/mutation.py "
+                                     "--report")[:8 + len(TESTS)]))
+        return
     if a.list:
         for mod, (n, chosen) in plan.items():
             print(f"{mod}: {n} sites; " + "; ".join(f"line {s[1]}: {s[3]}" for s in chosen))
@@ -249,7 +259,6 @@ def main(argv=None):
             if hashes.get(r["module"]) == r.get("source_sha")
             and not (a.rerun_survivors and r["outcome"] == "survived"
                      and equivalence_key(r) not in equivalent)}
-    n_sites = {m: n for m, (n, _) in plan.items()}
     _worktree(a.work)
     try:
         for mod, (n, chosen) in plan.items():
@@ -278,7 +287,7 @@ def main(argv=None):
         subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(a.work)],
                        capture_output=True)
     md = write_report(a.out, hashes, n_sites, cmd)
-    print("\n".join(md[:8 + len(plan)]))
+    print("\n".join(md[:8 + len(TESTS)]))
 
 
 if __name__ == "__main__":

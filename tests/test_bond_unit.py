@@ -697,6 +697,7 @@ def test_create_bonds_random_3d_matches_brute_force():
     (2, (40.0, 15.0), -120.0),          # the cloud entirely at negative coordinates
     (3, (30.0, 12.0, 21.0), 0.0),       # a box of three different lengths: strides differ
     (3, (20.0, 20.0, 9.0), -55.0),
+    (3, (9.0, 12.0, 30.0), -10.0),      # straddling the origin, the last axis the longest
 ])
 def test_create_bonds_across_many_cells_matches_brute_force(dim, lengths, offset):
     """Radii of order one metre (so the cell edge 2 max(R) + tol is neither tiny nor

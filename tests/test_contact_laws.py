@@ -186,3 +186,56 @@ def test_contact_sums_are_those_of_every_listed_row():
     touching = np.asarray(g.touching)
     want = np.bincount(np.asarray(i)[touching], minlength=n) + np.bincount(np.asarray(j)[touching], minlength=n)
     np.testing.assert_array_equal(np.asarray(count), want)
+
+
+def test_reported_depth_is_the_deepest_overlap_over_the_smaller_radius():
+    """The tunnelling measure the step's guard reads: a large and a small disc
+    overlapping by 0.4 of the small radius, and a second, shallower pair;
+    depth = max overlap / min(R_i, R_j) = 0.4 (over the larger radius it would
+    be 0.1: the small disc could pass through unnoticed)."""
+    from jdem import neighbors
+
+    r_big, r_small = 4e-3, 1e-3
+    pos = np.array([[0.0, 0.0], [r_big + 0.6 * r_small, 0.0],
+                    [0.0, 0.05], [0.0, 0.05 + 2 * r_small - 0.1 * r_small]])
+    p = jdem.make_particles(pos, [r_big, r_small, r_small, r_small])
+    state, cfg = jdem.make_state(p)
+    c, _ = neighbors.allocate(state.particles, cfg)
+    params = jdem.make_params(dim=2, kn=1e5, dt=1e-6)
+    *_, depth = contact.contact_forces(c, state.particles, params, cfg, report_depth=True)
+    assert float(depth) == pytest.approx(0.4, rel=1e-12)
+
+
+def test_wall_forces_of_a_large_system_equal_those_of_its_parts():
+    """Above kinematics.COMPUTED_ONCE_MIN_ROWS (wall, particle) rows the wall law
+    runs as a computation of its own behind a conditional; below it, inline.
+    Wall forces of one particle do not depend on the others, so 4,200 discs
+    against four walls (16,800 rows, the conditional) must get the forces of
+    the same discs taken 1,050 at a time (inline), at the first step, when no
+    wall has been touched yet."""
+    from jdem.kinematics import COMPUTED_ONCE_MIN_ROWS
+    from jdem.walls import wall_forces
+
+    n, r = 4200, 1e-3
+    assert 4 * n >= COMPUTED_ONCE_MIN_ROWS > 4 * (n // 4)
+    rng = np.random.default_rng(11)
+    pos = np.stack([np.arange(n) * 3 * r, rng.uniform(0.5 * r, 2 * r, n)], axis=1)
+    vel = rng.normal(0, 0.1, (n, 2))
+    params = jdem.make_params(dim=2, kn=1e5, friction=0.5, dt=1e-6)
+    walls_at = ([[0.0, 0.0], [0.0, 1.0], [-r, 0.0], [n * 3 * r, 0.0]],
+                [[0.0, 1.0], [0.0, -1.0], [1.0, 0.0], [-1.0, 0.0]])
+
+    def forces(sl):
+        p = jdem.make_particles(pos[sl], np.full(len(pos[sl]), r), vel=vel[sl],
+                                angvel=np.zeros(len(pos[sl])))
+        walls = jdem.make_walls(*walls_at, n_particles=len(pos[sl]))
+        state, cfg = jdem.make_state(p, walls=walls)
+        w, f, t, count = wall_forces(state.walls, state.particles, params, cfg)
+        return np.asarray(f), np.asarray(t), np.asarray(count), np.asarray(w.n_contacts)
+
+    f, t, count, per_wall = forces(slice(None))
+    assert 0 < per_wall[0] < n and np.all(per_wall[1:] == 0)   # only the floor touches
+    parts = [forces(slice(k, k + n // 4)) for k in range(0, n, n // 4)]
+    np.testing.assert_allclose(f, np.concatenate([x[0] for x in parts]), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(t, np.concatenate([x[1] for x in parts]), rtol=1e-12, atol=0)
+    np.testing.assert_array_equal(count, np.concatenate([x[2] for x in parts]))
