@@ -419,3 +419,50 @@ def test_diverging_block_run_stops_with_its_last_good_state():
     assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(good.blocks)
                if jnp.issubdtype(x.dtype, jnp.floating))
     assert err.value.step == int(good.step)
+
+
+def test_joint_history_follows_its_pair_when_a_rebuild_reorders_the_list():
+    """000 §2.3.3: the shear force of a contact is history.  A block resting on a
+    fixed base under a sideways load below mu m g holds a stretched shear spring
+    (pair (1, 2)).  A third block (index 0) is driven past them, so the list is
+    rebuilt and the new pairs (0, 1), (0, 2) sort before (1, 2): the row of
+    (1, 2) moves, and its shear forces and intact flags must move with it (a
+    carry by row position would hand them to another pair, and the resting block
+    would lose its spring and slip)."""
+    rest = bk.rectangle(0.0, 0.0, 1.0, 0.5)
+    base = bk.rectangle(-1.0, -1.0, 3.0, 1.0)
+    runner = bk.rectangle(-6.0, 0.6, 0.5, 0.5)
+    blocks = bk.make_blocks([runner, rest, base], 2500.0, fixed=[0, 2],
+                            vel=[[40.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    weight = float(blocks.mass[1]) * G
+    blocks = blocks._replace(ext_force=blocks.ext_force.at[1, 0].set(0.3 * weight))
+    p = bk.make_params(kn=1e8, friction=0.6, contact_damping=0.3, local_damping=0.7)
+    p = p._replace(dt=jnp.asarray(bk.recommended_timestep(blocks, p)))
+    state, config = bk.make_state(blocks)
+
+    def rows(s):
+        c = s.contacts
+        return {(int(i), int(j)): k for k, (i, j, v) in
+                enumerate(zip(np.asarray(c.i), np.asarray(c.j), np.asarray(c.valid))) if v}
+
+    settle = jax.jit(lambda s: jax.lax.fori_loop(0, 2000, lambda _, x: bk.step(x, p, config), s))
+    state = state._replace(blocks=state.blocks._replace(
+        vel=state.blocks.vel.at[0].set(0.0)))                 # the runner waits
+    state = settle(state)
+    before = rows(state)
+    assert set(before) == {(1, 2)}
+    hist = np.asarray(state.contacts.shear[before[(1, 2)]])
+    assert np.all(hist[2:] == 0)                              # no glued points
+    assert abs(np.sum(hist[:2])) == pytest.approx(0.3 * weight, rel=1e-3)   # the load
+    # the runner sets off and passes over the resting block within a few steps
+    state = state._replace(blocks=state.blocks._replace(
+        vel=state.blocks.vel.at[0].set(jnp.asarray([40.0, 0.0]))))
+    one = jax.jit(lambda s: bk.step(s, p, config))
+    for _ in range(int(6.0 / 40.0 / float(p.dt)) + 1):       # 6 m of travel lands it above
+        state = one(state)
+        if (0, 1) in rows(state):
+            break
+    after = rows(state)
+    assert (0, 1) in after and after[(1, 2)] != before[(1, 2)]
+    np.testing.assert_allclose(np.asarray(state.contacts.shear[after[(1, 2)]]), hist,
+                               rtol=1e-6, atol=1e-9 * weight)
