@@ -15,7 +15,8 @@
    coefficients (000 eq 9-2, 9-3 from int v^2 dt, eq 9-6) against
    omega Z / 2K, with the row's exact values and the continuum joint.
 4. A jointed rock mass (two joint sets cut a 4 m x 2 m region) settling onto a
-   fixed floor, coloured by speed.
+   fixed floor, coloured by speed, and its contact points by state (sticking,
+   sliding, glued) with their normal forces.
 
 Writes PNGs, ``blocks_verification.h5`` (jdem.io; reopen with
 ``jdem.io.load_history``) and ``results.md`` to experiments/results/blocks/
@@ -40,6 +41,7 @@ import numpy as np  # noqa: E402
 import jdem.io  # noqa: E402
 from jdem import blocks as bk  # noqa: E402
 from jdem.blocks import cases  # noqa: E402
+from jdem.plot import plot_blocks  # noqa: E402
 
 PHI = 30.0
 
@@ -89,22 +91,8 @@ def jointed_mass(n_steps):
     weight = float(jnp.sum(blocks.mass[3:])) * 9.81
     reaction = -float(force[0, 1] + force[1, 1] + force[2, 1])
     speed = float(np.max(np.linalg.norm(np.asarray(state.blocks.vel), axis=1)))
-    return state, hist, dict(blocks=len(polys), weight=weight, reaction=reaction,
-                             steps=n_steps, wall_s=wall, max_speed=speed)
-
-
-def draw_blocks(ax, state, color_by):
-    from matplotlib.collections import PolyCollection
-
-    w = np.asarray(bk.world_vertices(state.blocks))
-    valid = np.asarray(state.blocks.vert_valid)
-    polys = [w[k][valid[k]] for k in range(w.shape[0]) if bool(state.blocks.valid[k])]
-    pc = PolyCollection(polys, array=np.asarray(color_by), cmap="viridis", edgecolors="k",
-                        linewidths=0.3)
-    ax.add_collection(pc)
-    ax.autoscale()
-    ax.set_aspect("equal")
-    return pc
+    return state, p, hist, dict(blocks=len(polys), weight=weight, reaction=reaction,
+                                steps=n_steps, wall_s=wall, max_speed=speed)
 
 
 def main(argv=None):
@@ -145,7 +133,7 @@ def main(argv=None):
               f"{d['T_continuum']:.4f}), R {d['R']:.4f} (row {d['R_lattice']:.4f}, "
               f"continuum {d['R_continuum']:.4f})", flush=True)
 
-    mass_state, mass_hist, mass_info = jointed_mass(30000 if args.small else 60000)
+    mass_state, mass_params, mass_hist, mass_info = jointed_mass(30000 if args.small else 60000)
     print("jointed mass", mass_info, flush=True)
 
     # ---- figures
@@ -195,11 +183,10 @@ def main(argv=None):
     fig.tight_layout()
     fig.savefig(out / "wave_across_joint.png", dpi=120)
 
-    fig, ax = plt.subplots(figsize=(7, 3.5))
-    speed = np.linalg.norm(np.asarray(mass_state.blocks.vel), axis=1)
-    pc = draw_blocks(ax, mass_state, speed[np.asarray(mass_state.blocks.valid)])
-    fig.colorbar(pc, ax=ax, label="speed [m/s]")
-    ax.set_title(f"jointed mass, {mass_info['blocks']} blocks, after {mass_info['steps']} steps")
+    fig, axs = plt.subplots(2, 1, figsize=(7, 7))
+    title = f"jointed mass, {mass_info['blocks']} blocks, after {mass_info['steps']} steps"
+    plot_blocks(mass_state, mass_params, color="speed", title=title, ax=axs[0])
+    plot_blocks(mass_state, mass_params, color="contacts", title="contact states", ax=axs[1])
     fig.tight_layout()
     fig.savefig(out / "jointed_mass.png", dpi=120)
     plt.close("all")

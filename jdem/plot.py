@@ -294,3 +294,77 @@ def plot_sweep(table, x, y=None, value="peak_stress", ax=None, path=None):
         path.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(path, dpi=120, bbox_inches="tight")
     return ax
+
+
+# ----------------------------------------------------------------------------- blocks
+#: contact states drawn by :func:`plot_blocks`, with their colours
+CONTACT_STATES = (("intact (glued)", "tab:purple"), ("sticking", "tab:blue"),
+                  ("sliding", "tab:red"))
+
+
+def contact_states(info):
+    """Each contact point's state from :class:`jdem.blocks.ContactForces`:
+    (C, 2) ints, -1 open (no force), 0 intact, 1 sticking, 2 sliding."""
+    active, intact, sliding = (np.asarray(x) for x in (info.active, info.intact, info.sliding))
+    state = np.where(sliding, 2, 1)
+    state = np.where(intact, 0, state)
+    return np.where(active, state, -1)
+
+
+def plot_blocks(state, params, path=None, *, color="speed", title=None, ax=None):
+    """Blocks (:class:`jdem.blocks.BlockState`) drawn as polygons.
+
+    color  "speed": blocks coloured by |v| [m/s]; "contacts": blocks in grey,
+           each touching contact point a dot coloured by its state (intact,
+           sticking, sliding: :func:`contact_states`) with a line along the
+           normal whose length is proportional to the normal force (the force
+           chains of the jointed mass)
+    Writes a PNG to ``path`` when given; returns the figure.
+    """
+    from matplotlib.collections import LineCollection, PolyCollection
+
+    from jdem import blocks as bk
+
+    if color not in ("speed", "contacts"):
+        raise InputError(f"plot_blocks: color must be 'speed' or 'contacts', got {color!r}")
+    b = state.blocks
+    keep = np.asarray(b.valid)
+    w = np.asarray(bk.world_vertices(b))
+    vv = np.asarray(b.vert_valid)
+    polys = [w[k][vv[k]] for k in np.flatnonzero(keep)]
+    fig = ax.figure if ax is not None else _figure((7, 4))
+    ax = ax if ax is not None else fig.subplots()
+    if color == "speed":
+        speed = np.linalg.norm(np.asarray(b.vel), axis=1)[keep]
+        pc = PolyCollection(polys, array=speed, cmap="viridis", edgecolors="k", linewidths=0.3)
+        ax.add_collection(pc)
+        fig.colorbar(pc, ax=ax, label="speed [m/s]")
+    else:
+        ax.add_collection(PolyCollection(polys, facecolors="0.85", edgecolors="0.4",
+                                         linewidths=0.3))
+        _, _, _, info = bk.contact_forces(state, params)
+        kind = contact_states(info)
+        point = np.asarray(info.point)
+        normal = np.broadcast_to(np.asarray(info.normal)[:, None, :], point.shape)
+        fn = np.abs(np.asarray(info.fn))
+        scale = 0.8 * float(np.median(np.asarray(b.radius)[keep])) / max(float(fn.max()), 1e-300)
+        on = kind >= 0
+        seg = np.stack([point[on] - 0.5 * scale * fn[on, None] * normal[on],
+                        point[on] + 0.5 * scale * fn[on, None] * normal[on]], axis=1)
+        ax.add_collection(LineCollection(seg, colors="tab:orange", linewidths=1.8))
+        for k, (label, col) in enumerate(CONTACT_STATES):
+            sel = kind == k
+            ax.plot(point[sel][:, 0], point[sel][:, 1], "o", ms=2.5, color=col,
+                    label=f"{label} ({int(sel.sum())})")
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), title_fontsize=7,
+                  title="contact points\n(bars: normal force)")
+    ax.autoscale()
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    if title:
+        ax.set_title(title)
+    if path is not None:
+        fig.tight_layout()
+        fig.savefig(path, dpi=120)
+    return fig

@@ -466,3 +466,21 @@ def test_joint_history_follows_its_pair_when_a_rebuild_reorders_the_list():
     assert (0, 1) in after and after[(1, 2)] != before[(1, 2)]
     np.testing.assert_allclose(np.asarray(state.contacts.shear[after[(1, 2)]]), hist,
                                rtol=1e-6, atol=1e-9 * weight)
+
+
+@pytest.mark.parametrize("slope, expect", [(20.0, 1), (45.0, 2)])
+def test_contact_states_tell_sticking_from_sliding_and_are_drawn(tmp_path, slope, expect):
+    """A block on a 30-degree joint: below the friction angle both of its contact
+    points stick, above it both slide (jdem.plot.contact_states); the contact-state
+    figure is written."""
+    from jdem.plot import contact_states, plot_blocks
+
+    state, p, config = _incline(0.5, 0.5, slope, 30.0)
+    state, _ = bk.run(state, p, config, 400, record_every=400, progress=False)
+    _, _, _, info = bk.contact_forces(state, p)
+    kind = contact_states(info)
+    assert sorted(kind[kind >= 0].tolist()) == [expect, expect]
+    plot_blocks(state, p, tmp_path / "contacts.png", color="contacts")
+    assert (tmp_path / "contacts.png").stat().st_size > 10_000
+    with pytest.raises(InputError, match="color"):
+        plot_blocks(state, p, color="stress")
