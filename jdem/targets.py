@@ -284,9 +284,12 @@ def curve_residuals(strain, stress, target: Target, weights: LossWeights = LossW
         if lateral is None:
             raise InputError("the target has a lateral strain column but the test records "
                              "none")
-        read = ~np.isnan(target.lateral_strain)          # points with a reading
-        lt = jnp.asarray(np.where(read, target.lateral_strain, 0.0))
-        scale_l = max(float(np.max(np.abs(target.lateral_strain[read]))), 1e-12)
+        # points with a reading; the target may arrive traced (a solver passes it as
+        # an argument of its compiled step), so no host conversions here
+        lt_all = jnp.asarray(target.lateral_strain)
+        read = ~jnp.isnan(lt_all)
+        lt = jnp.where(read, lt_all, 0.0)
+        scale_l = jnp.maximum(jnp.max(jnp.abs(lt)), 1e-12)
         sim_l = jnp.interp(et, strain, lateral)
         wl = w * read
         parts.append(jnp.sqrt(weights.lateral * wl / jnp.maximum(jnp.sum(wl), 1e-300))

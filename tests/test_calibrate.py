@@ -267,6 +267,12 @@ def test_lateral_strain_without_readings_carries_no_residual(tmp_path):
     np.testing.assert_array_equal(r_off, r_same)
     r_read = cb.curve_residuals(jnp.asarray(e), jnp.asarray(s), t, lateral=jnp.asarray(0.5 * lat))
     assert float(jnp.sum(r_read ** 2)) > 0.01
+    # the solvers pass the target into their compiled step as an argument: the
+    # residuals must trace with the target's arrays abstract
+    traced = jax.jit(lambda tt, lat_: cb.curve_residuals(jnp.asarray(e), jnp.asarray(s), tt,
+                                                          lateral=lat_))
+    np.testing.assert_allclose(np.asarray(traced(t, jnp.asarray(0.5 * lat))), np.asarray(r_read),
+                               rtol=1e-12, atol=1e-15)
     few = np.full(e.size, np.nan)
     few[:2] = 0.0
     with pytest.raises(InputError, match="2 readings"):
@@ -316,10 +322,14 @@ def test_calibration_three_parameters_on_the_targets_packing(tmp_path):
                        out=tmp_path / "cal.h5", require_quasi_static=False)
     print(cb.report(res, TRUE))
     assert res.method == "lm" and res.jacobian == "forward"
-    assert res.steps <= 20
-    assert abs(res.values["E"] / TRUE["E"] - 1) < 0.01
-    assert abs(res.values["strength"] / TRUE["strength"] - 1) < 0.02
-    assert abs(res.values["kappa"] / TRUE["kappa"] - 1) < 0.10
+    tolerance = dict(E=0.01, strength=0.02, kappa=0.10)
+    assert all(abs(res.values[n] / TRUE[n] - 1) < tol for n, tol in tolerance.items())
+    # the "a typical fit converges in <= 15 iterations": the iterate is
+    # inside every tolerance by the 15th evaluation and stays there
+    inside = [all(abs(res.history[n][k] / TRUE[n] - 1) < tol for n, tol in tolerance.items())
+              for k in range(res.steps)]
+    print("inside the tolerances at iterations", [k for k, v in enumerate(inside) if v])
+    assert inside.index(True) < 15 and all(inside[inside.index(True):])
     assert res.history["loss"][0] > 100 * res.loss
     assert res.correlation.shape == (3, 3)
     np.testing.assert_allclose(np.diag(res.correlation), 1.0, rtol=1e-9)
@@ -575,9 +585,12 @@ def test_poisson_ratio_from_the_lateral_strain_on_the_targets_packing():
     res = cb.calibrate(model, target, dict(E=1.4 * TRUE["E"], nu=0.7 * nu), params=params,
                        steps=20, progress=False, require_quasi_static=False)
     print(cb.report(res, dict(E=TRUE["E"], nu=nu)))
-    assert res.steps <= 20
-    assert abs(res.values["E"] / TRUE["E"] - 1) < 0.01
-    assert abs(res.values["nu"] / nu - 1) < 0.10
+    truth, tolerance = dict(E=TRUE["E"], nu=nu), dict(E=0.01, nu=0.10)
+    assert all(abs(res.values[n] / truth[n] - 1) < tol for n, tol in tolerance.items())
+    inside = [all(abs(res.history[n][k] / truth[n] - 1) < tol for n, tol in tolerance.items())
+              for k in range(res.steps)]
+    print("inside the tolerances at iterations", [k for k, v in enumerate(inside) if v])
+    assert inside.index(True) < 15 and all(inside[inside.index(True):])
 
 
 @pytest.mark.slow
