@@ -484,3 +484,51 @@ def test_contact_states_tell_sticking_from_sliding_and_are_drawn(tmp_path, slope
     assert (tmp_path / "contacts.png").stat().st_size > 10_000
     with pytest.raises(InputError, match="color"):
         plot_blocks(state, p, color="stress")
+
+
+# ----------------------------------------------------------------------------- 000 §9.2.2
+def _basalt_rigid_moduli(s=0.2):
+    joints = {k: v for k, v in cases.BASALT_JOINTS.items() if k != "spacing"}
+    return cases.jointed_mass_moduli_rigid(**joints, s_s=s, s_n=s)
+
+
+@pytest.mark.parametrize("stagger", [True, False])
+def test_jointed_mass_loaded_across_its_horizontal_joints_has_the_rigid_block_modulus(stagger):
+    """000 §9.2.2 with the book's basalt joints (20 cm spacing) in the rigid-block
+    limit of eq 9-7 and 9-10: cycled 2 -> 10 -> 2 MPa normal to the horizontal
+    joints, a 4 x 5 wall of blocks (staggered as in fig 9-3, or a square grid)
+    has E_n = k_nh s_n = 106.4 GPa at every level, loading and unloading, and no
+    lateral strain (nu_ns = 0)."""
+    theory = _basalt_rigid_moduli()
+    sigma_n = np.array([2.0, 6.0, 10.0, 6.0, 2.0]) * 1e6
+    eps, _ = cases.load_jointed_mass(cases.jointed_mass(4, 5, stagger=stagger), sigma_n,
+                                     np.zeros(sigma_n.size), steps_per_level=3000)
+    np.testing.assert_allclose(sigma_n / eps[:, 0], theory["E_n"], rtol=1e-3)
+    assert np.all(np.abs(eps[:, 1]) < 1e-5 * eps[:, 0])     # residual of the relaxation: 1e-6
+
+
+def test_square_jointed_mass_loaded_along_its_rows_has_the_rigid_block_modulus():
+    """The same in the s direction (eq 9-8): E_s = k_nv s_s = 79.2 GPa."""
+    theory = _basalt_rigid_moduli()
+    sigma_s = np.array([2.0, 5.0]) * 1e6
+    eps, _ = cases.load_jointed_mass(cases.jointed_mass(4, 5, stagger=False),
+                                     np.zeros(sigma_s.size), sigma_s, steps_per_level=3000)
+    np.testing.assert_allclose(sigma_s / eps[:, 1], theory["E_s"], rtol=1e-3)
+    assert np.all(np.abs(eps[:, 0]) < 1e-5 * eps[:, 1])
+
+
+@pytest.mark.xfail(strict=True, reason="not met (measured): with 5 MPa held along the rows "
+                   "the grid's E_n is 2.4-3.3 x k_nh s_n (the staggered wall's 1.0-1.56 x "
+                   "with slip between its courses): four blocks meet at every grid corner, "
+                   "and once the mass shortens both ways the diagonal neighbours' corners "
+                   "overlap and push (the corner-corner contact of 000 fig 3-11); the narrow "
+                   "phase has neither the book's criterion for it nor rounded corners "
+                   "(eq 3-34, 3-35)")
+def test_square_jointed_mass_under_the_books_biaxial_cycle():
+    """000 §9.2.2's loading: 5 MPa held along the rows, 2 -> 10 MPa across them;
+    in the rigid-block limit E_n = k_nh s_n still (nu_ns = 0 decouples them)."""
+    theory = _basalt_rigid_moduli()
+    sigma_n = np.array([2.0, 6.0, 10.0]) * 1e6
+    eps, _ = cases.load_jointed_mass(cases.jointed_mass(4, 5, stagger=False), sigma_n,
+                                     np.full(sigma_n.size, 5e6), steps_per_level=3000)
+    np.testing.assert_allclose(np.diff(sigma_n) / np.diff(eps[:, 0]), theory["E_n"], rtol=0.05)

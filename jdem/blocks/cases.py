@@ -1,5 +1,5 @@
 """The book's verification cases for the block method, set up once for the tests
-and the experiments (000 §2.2, §3.4, §9.2.1).
+and the experiments (000 §2.2, §3.4, §9.2.1, §9.2.2).
 
 Citations ("000 eq 9-3") refer to the documents listed in REFERENCES.md.
 
@@ -15,6 +15,11 @@ Citations ("000 eq 9-3") refer to the documents listed in REFERENCES.md.
   :func:`continuum_transmission` its long-wave limit, the displacement-
   discontinuity joint |T| = (1 + (omega Z / 2 K)^2)^(-1/2) between half-spaces
   of impedance Z = rho c h.
+* :func:`jointed_mass`: a wall of blocks cut by a horizontal and a vertical
+  joint set, staggered (000 §9.2.2, fig 9-3) or a square grid, with the book's
+  basalt joint stiffnesses; :func:`load_jointed_mass` applies the book's normal
+  stresses level by level and returns the strains, to compare with
+  :func:`jointed_mass_moduli_rigid` (eq 9-7…9-10 in the rigid-block limit).
 """
 from __future__ import annotations
 
@@ -276,3 +281,124 @@ def wave_across_joint(stiffness_ratio, *, n_blocks=600, wavelength=20, monitor_o
                 T_continuum=float(t_c), R_continuum=float(r_c), omega=omega,
                 joint_stiffness=float(joint_k / chain.dx), time=t, v_left=v[:, 0], v_right=v[:, 1],
                 split=float(split))
+
+
+# ----------------------------------------------------------------------------- 000 §9.2.2
+#: the basalt joints of 000 §9.2.2 [Pa/m]: normal and shear stiffness of the
+#: horizontal (h) and vertical (v) joints; joint spacing 20 cm
+BASALT_JOINTS = dict(k_nh=531.9e9, k_sh=438.9e9, k_nv=395.9e9, k_sv=438.8e9, spacing=0.20)
+
+
+class JointedMass(NamedTuple):
+    """A wall of rigid blocks cut by a horizontal (h) and a vertical (v) joint set,
+    on a fixed base with a fixed wall on its left (000 §9.2.2, fig 9-3).  Block
+    0 is the base, 1 the wall, then the rows from the bottom, each from the left.
+    ``rows`` lists each row's block indices; ``widths`` every block's width."""
+
+    state: object
+    params: object
+    config: object
+    rows: list
+    widths: np.ndarray
+    s_s: float
+    s_n: float
+
+
+def jointed_mass(nx=4, ny=5, *, s_s=0.2, s_n=0.2, stagger=True, k_nh=BASALT_JOINTS["k_nh"],
+                 k_sh=BASALT_JOINTS["k_sh"], k_nv=BASALT_JOINTS["k_nv"],
+                 k_sv=BASALT_JOINTS["k_sv"], friction=0.8, local_damping=0.7,
+                 density=2700.0) -> JointedMass:
+    """ny rows of blocks s_s wide and s_n high, no gravity.  With ``stagger`` the
+    vertical joints of every other row are offset by s_s / 2 (a running bond,
+    the staggered joints of fig 9-3; those rows end in half blocks), else the
+    joints form a square grid where four blocks meet at each corner.
+
+    Joint stiffnesses are per unit area [Pa/m].  A face contact is two points,
+    each carrying half the contact length L (000 §3.4, fig 3-13), so a point's
+    spring is k L / 2: L = s_n for a vertical joint, s_s for a horizontal one in
+    the grid and s_s / 2 in the running bond (each block sits on two).  The sets
+    get their own stiffnesses through the material table: a block's material is
+    2 (row parity) + (column parity), so a horizontal joint joins materials of
+    different row parity and a vertical one materials of equal row parity; the
+    base (material 4) joins horizontally, the wall (5) vertically."""
+    if ny < 3 or nx < 2:
+        raise ValueError(f"jointed_mass needs nx >= 2 and ny >= 3, got {nx} x {ny}")
+    polys = [rectangle(-s_s, -s_n, (nx + 2) * s_s, s_n),               # base
+             rectangle(-s_s, 0.0, s_s, (ny + 1) * s_n)]                 # wall
+    material, rows, widths = [4, 5], [], [(nx + 2) * s_s, s_s]
+    for r in range(ny):
+        edges = np.arange(nx + 1) * s_s
+        if stagger and r % 2:
+            edges = np.concatenate([[0.0], (np.arange(nx) + 0.5) * s_s, [nx * s_s]])
+        row = []
+        for c in range(edges.size - 1):
+            row.append(len(polys))
+            polys.append(rectangle(edges[c], r * s_n, edges[c + 1] - edges[c], s_n))
+            material.append(2 * (r % 2) + c % 2)
+            widths.append(edges[c + 1] - edges[c])
+        rows.append(np.asarray(row))
+    row_bit = np.array([0, 0, 1, 1, -1, -2])
+    horizontal = (row_bit[:, None] != row_bit[None]) & ~np.eye(6, dtype=bool)
+    horizontal[5, :] = horizontal[:, 5] = False                # the wall: vertical joints
+    horizontal[4, 5] = horizontal[5, 4] = True                 # base-wall: never in contact
+    length_h = 0.5 * s_s if stagger else s_s
+    kn = np.where(horizontal, 0.5 * k_nh * length_h, 0.5 * k_nv * s_n)
+    ks = np.where(horizontal, 0.5 * k_sh * length_h, 0.5 * k_sv * s_n)
+    blocks = make_blocks(polys, density, fixed=[0, 1], material=material)
+    state, config = make_state(blocks)
+    p = make_params(kn=kn, ks=ks, friction=friction, local_damping=local_damping,
+                    gravity=(0.0, 0.0))
+    p = p._replace(dt=jnp.asarray(recommended_timestep(blocks, p)))
+    return JointedMass(state, p, config, rows, np.asarray(widths), s_s, s_n)
+
+
+def jointed_mass_moduli_rigid(k_nh, k_sh, k_nv, k_sv, s_s, s_n):
+    """000 eq 9-7…9-10 in the rigid-block limit (E_i, G_i -> infinity, where the
+    stress concentration factors b_nn, b_sn drop out): E_n = k_nh s_n,
+    E_s = k_nv s_s, G_ns = s_s s_n k_sh k_sv / (s_s k_sv + s_n k_sh),
+    nu_ns = 0 [Pa, -].  (Eq 9-8 as printed has k_sv; the s-direction modulus of
+    the joints comes from the vertical joints' normal stiffness, k_nv, as eq
+    9-7's comes from k_nn.)"""
+    return dict(E_n=k_nh * s_n, E_s=k_nv * s_s,
+                G_ns=s_s * s_n * k_sh * k_sv / (s_s * k_sv + s_n * k_sh), nu_ns=0.0)
+
+
+def load_jointed_mass(case: JointedMass, sigma_n, sigma_s, *, steps_per_level=4000):
+    """000 §9.2.2's loading: normal stresses on the top (sigma_n) and right
+    (sigma_s) faces [Pa, compression positive], one pair per level, each relaxed
+    for ``steps_per_level`` steps (dynamic relaxation, 000 §2.4), continuing
+    from the last level.  Returns ``((L, 2) strains, state)``: eps_n from the
+    mean vertical displacement of the top row against the bottom row over their
+    (ny - 1) s_n, eps_s from the horizontal displacement of each row of whole
+    blocks' last block against its first over (n - 1) s_s; compression positive.
+    The base and wall joints are left out (their contacts differ at the ends of
+    a staggered row)."""
+    import jax
+
+    from jdem.blocks.cycle import step
+
+    state, p, config = case.state, case.params, case.config
+    b0 = state.blocks
+    pos0 = np.asarray(b0.pos)
+    whole = [r for r in case.rows if np.allclose(case.widths[r], case.s_s)]
+
+    @jax.jit
+    def relax(state, ext):
+        state = state._replace(blocks=state.blocks._replace(ext_force=ext))
+        return jax.lax.fori_loop(0, steps_per_level, lambda _, s: step(s, p, config), state)
+
+    def strains(pos):
+        d = pos - pos0
+        e_n = (d[case.rows[0], 1].mean() - d[case.rows[-1], 1].mean()) / \
+            ((len(case.rows) - 1) * case.s_n)
+        e_s = np.mean([(d[r[0], 0] - d[r[-1], 0]) / ((r.size - 1) * case.s_s) for r in whole])
+        return e_n, e_s
+
+    out = []
+    for sn, ss in zip(np.atleast_1d(sigma_n), np.atleast_1d(sigma_s)):
+        ext = np.zeros(b0.ext_force.shape)
+        ext[case.rows[-1], 1] -= sn * case.widths[case.rows[-1]]
+        ext[[r[-1] for r in case.rows], 0] -= ss * case.s_n
+        state = relax(state, jnp.asarray(ext, b0.pos.dtype))
+        out.append(strains(np.asarray(state.blocks.pos)))
+    return np.asarray(out), state
