@@ -291,7 +291,8 @@ BASALT_JOINTS = dict(k_nh=531.9e9, k_sh=438.9e9, k_nv=395.9e9, k_sv=438.8e9, spa
 
 class JointedMass(NamedTuple):
     """A wall of rigid blocks cut by a horizontal (h) and a vertical (v) joint set,
-    on a fixed base with a fixed wall on its left (000 §9.2.2, fig 9-3).  Block
+    on a fixed base with a fixed wall on its left, both rollers (000 §9.2.2,
+    fig 9-3).  Block
     0 is the base, 1 the wall, then the rows from the bottom, each from the left.
     ``rows`` lists each row's block indices; ``widths`` every block's width."""
 
@@ -313,14 +314,14 @@ def jointed_mass(nx=4, ny=5, *, s_s=0.2, s_n=0.2, stagger=True, k_nh=BASALT_JOIN
     the staggered joints of fig 9-3; those rows end in half blocks), else the
     joints form a square grid where four blocks meet at each corner.
 
-    Joint stiffnesses are per unit area [Pa/m].  A face contact is two points,
-    each carrying half the contact length L (000 §3.4, fig 3-13), so a point's
-    spring is k L / 2: L = s_n for a vertical joint, s_s for a horizontal one in
-    the grid and s_s / 2 in the running bond (each block sits on two).  The sets
-    get their own stiffnesses through the material table: a block's material is
-    2 (row parity) + (column parity), so a horizontal joint joins materials of
-    different row parity and a vertical one materials of equal row parity; the
-    base (material 4) joins horizontally, the wall (5) vertically."""
+    Joint stiffnesses are per unit area [Pa/m], the blocks' face stiffness
+    (``kn_face``, ``ks_face``: an edge–edge contact of length L is two points
+    of k L / 2, 000 §3.4.1, fig 3-13); a corner–edge contact gets the points of
+    a whole face, k s / 2.  The sets get their own stiffnesses through the
+    material table: a block's material is 2 (row parity) + (column parity), so
+    a horizontal joint joins materials of different row parity and a vertical
+    one materials of equal row parity; the base (material 4) joins horizontally,
+    the wall (5) vertically."""
     if ny < 3 or nx < 2:
         raise ValueError(f"jointed_mass needs nx >= 2 and ny >= 3, got {nx} x {ny}")
     polys = [rectangle(-s_s, -s_n, (nx + 2) * s_s, s_n),               # base
@@ -341,12 +342,18 @@ def jointed_mass(nx=4, ny=5, *, s_s=0.2, s_n=0.2, stagger=True, k_nh=BASALT_JOIN
     horizontal = (row_bit[:, None] != row_bit[None]) & ~np.eye(6, dtype=bool)
     horizontal[5, :] = horizontal[:, 5] = False                # the wall: vertical joints
     horizontal[4, 5] = horizontal[5, 4] = True                 # base-wall: never in contact
-    length_h = 0.5 * s_s if stagger else s_s
-    kn = np.where(horizontal, 0.5 * k_nh * length_h, 0.5 * k_nv * s_n)
-    ks = np.where(horizontal, 0.5 * k_sh * length_h, 0.5 * k_sv * s_n)
+    kn_face, ks_face = np.where(horizontal, k_nh, k_nv), np.where(horizontal, k_sh, k_sv)
+    face = np.where(horizontal, s_s, s_n)
+    # base and wall are rollers (no shear, no friction), so that neither carries
+    # part of the load along its face
+    roller = np.zeros((6, 6), bool)
+    roller[4:, :] = roller[:, 4:] = True
+    ks_face = np.where(roller, 0.0, ks_face)
+    mu = np.where(roller, 0.0, friction)
     blocks = make_blocks(polys, density, fixed=[0, 1], material=material)
     state, config = make_state(blocks)
-    p = make_params(kn=kn, ks=ks, friction=friction, local_damping=local_damping,
+    p = make_params(kn=0.5 * kn_face * face, ks=0.5 * ks_face * face, kn_face=kn_face,
+                    ks_face=ks_face, friction=mu, local_damping=local_damping,
                     gravity=(0.0, 0.0))
     p = p._replace(dt=jnp.asarray(recommended_timestep(blocks, p)))
     return JointedMass(state, p, config, rows, np.asarray(widths), s_s, s_n)

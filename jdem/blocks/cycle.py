@@ -60,6 +60,13 @@ class BlockParams(NamedTuple):
     friction         (M, M) mu = tan(phi) of the joints [-]
     cohesion         (M, M) shear strength of an intact point at zero normal force [N]
     tension          (M, M) tensile strength of an intact point [N]
+    kn_face, ks_face (M, M) normal and shear stiffness of a face contact per unit
+                     area [Pa/m] (000 §3.4.1, fig 3-13: edge–edge contacts have
+                     stiffness in stress per displacement): where > 0, a pair
+                     touching at both ends of its clipped edge of length L
+                     (an edge–edge contact) has points of k L / 2 each (000 eq
+                     3-36, 3-37); a corner–edge contact keeps ``kn``, ``ks``.  0:
+                     every point uses ``kn``, ``ks``
     jrc, jcs         (M, M) Barton's joint roughness coefficient [-] and joint wall
                      compressive strength [Pa] (000 eq 3-43): where jrc > 0 the
                      friction angle of a point is atan(friction) + JRC log10(JCS /
@@ -79,30 +86,34 @@ class BlockParams(NamedTuple):
     tension: jnp.ndarray
     jrc: jnp.ndarray
     jcs: jnp.ndarray
+    kn_face: jnp.ndarray
+    ks_face: jnp.ndarray
     contact_damping: jnp.ndarray
     local_damping: jnp.ndarray
     viscous_damping: jnp.ndarray
     gravity: jnp.ndarray
 
 
-JOINT_TABLE = ("kn", "ks", "friction", "cohesion", "tension", "jrc", "jcs")
+JOINT_TABLE = ("kn", "ks", "friction", "cohesion", "tension", "jrc", "jcs", "kn_face", "ks_face")
 
 
 def make_params(*, kn, ks=None, friction=0.5, cohesion=0.0, tension=0.0, jrc=0.0, jcs=1e8,
-                contact_damping=0.0,
+                kn_face=0.0, ks_face=None, contact_damping=0.0,
                 local_damping=0.0, viscous_damping=0.0, gravity=(0.0, -9.81), dt=None,
                 dtype=None) -> BlockParams:
     """Block parameters with checks.
 
     The joint properties (``kn``, ``ks``, ``friction``, ``cohesion``,
-    ``tension``, ``jrc``, ``jcs``) are numbers (one kind of joint) or symmetric (M, M) tables over
-    the block materials (:class:`BlockParams`).  ``ks`` defaults to
-    kn / (2 (1 + 0.25)) (000 eq 3-33 with nu = 0.25); ``dt`` to NaN (set it
-    with :func:`recommended_timestep` before running).
+    ``tension``, ``jrc``, ``jcs``, ``kn_face``, ``ks_face``) are numbers (one
+    kind of joint) or symmetric (M, M) tables over the block materials
+    (:class:`BlockParams`).  ``ks`` defaults to kn / (2 (1 + 0.25)) (000 eq 3-33
+    with nu = 0.25), ``ks_face`` likewise to kn_face / 2.5; ``dt`` to NaN (set
+    it with :func:`recommended_timestep` before running).
     """
     ks = np.asarray(kn, dtype=np.float64) / 2.5 if ks is None else ks
+    ks_face = np.asarray(kn_face, dtype=np.float64) / 2.5 if ks_face is None else ks_face
     table = dict(kn=kn, ks=ks, friction=friction, cohesion=cohesion, tension=tension, jrc=jrc,
-                 jcs=jcs)
+                 jcs=jcs, kn_face=kn_face, ks_face=ks_face)
     arrays = {k: np.asarray(v, dtype=np.float64) for k, v in table.items()}
     # the table size comes from kn if it is a table, else from the first table given
     m = next((a.shape[0] for a in arrays.values() if a.ndim == 2), 1)
@@ -208,8 +219,16 @@ def contact_forces(state: BlockState, params: BlockParams):
     vt = jnp.sum(v_rel * t, axis=-1)
     overlap = -g.separation
     ma, mb = b.material[c.i], b.material[c.j]
-    kn, ks, mu, coh, ten, jrc, jcs = (getattr(params, name)[ma, mb][:, None]
-                                      for name in JOINT_TABLE)
+    kn, ks, mu, coh, ten, jrc, jcs, kn_face, ks_face = (getattr(params, name)[ma, mb][:, None]
+                                                        for name in JOINT_TABLE)
+    # an edge–edge contact (both ends of the clipped edge touching) on a joint with
+    # a face stiffness: each point carries half the contact length (000 fig 3-13,
+    # eq 3-36, 3-37), so a sliver of an edge (e.g. two corners that meet) carries
+    # next to nothing; a corner–edge contact keeps its point stiffness
+    half = 0.5 * g.length[:, None]
+    edge_edge = jnp.all(active, axis=1, keepdims=True)
+    kn = jnp.where((kn_face > 0) & edge_edge, kn_face * half, kn)
+    ks = jnp.where((ks_face > 0) & edge_edge, ks_face * half, ks)
     # Barton's rough joint (000 eq 3-43) where jrc > 0: the friction angle rises as
     # the point's normal stress falls; the stress from the elastic normal force
     share = jnp.maximum(0.5 * g.length, 1e-6 * (b.radius[c.i] + b.radius[c.j]))[:, None]
@@ -297,8 +316,12 @@ def critical_timestep(blocks: Blocks, params: BlockParams, *, points=None):
     """
     b = blocks
     z = 2.0 * jnp.sum(b.vert_valid, axis=1) if points is None else points
-    kn = jnp.max(params.kn[b.material], axis=1)          # stiffest joint of each block
-    k = kn + jnp.max(params.ks[b.material], axis=1)
+    # stiffest joint of each block; a face contact's point has k L / 2 <= k R
+    # (no edge is longer than the bounding diameter 2 R)
+    kn = jnp.maximum(jnp.max(params.kn[b.material], axis=1),
+                     jnp.max(params.kn_face[b.material], axis=1) * b.radius)
+    k = kn + jnp.maximum(jnp.max(params.ks[b.material], axis=1),
+                         jnp.max(params.ks_face[b.material], axis=1) * b.radius)
     c = 2.0 * params.contact_damping * jnp.sqrt(b.mass * kn)
     w2_tr = 2.0 * z * k / b.mass
     g_tr = 2.0 * z * c / b.mass + params.viscous_damping

@@ -7,7 +7,9 @@ displacement, F_n = k_n u_n (000 eq 2-1, compression positive: the sign
 convention of 002), the shear force its increments, dF_s = -k_s du_s
 (000 eq 2-2).  Stiffnesses are per contact point [N/m]; for an edge–edge
 contact of length L (two points) on a joint of stiffness k [Pa/m] per unit
-thickness, k_n = k L / 2 (000 eq 3-36, 3-37 with L_1 = L_2 = L / 2).  000 eq
+thickness, k_n = k L / 2 (000 eq 3-36, 3-37 with L_1 = L_2 = L / 2; the
+contact law does this per contact where the joint has a face stiffness,
+``BlockParams.kn_face``).  000 eq
 3-32, 3-33 estimate k_n = E a / (2 b), k_s = k_n / (2 (1 + nu)) from the
 blocks' modulus and size.
 
