@@ -583,3 +583,40 @@ def test_certificate_estimates_the_distance_to_the_quasi_static_peak():
     np.testing.assert_allclose(9.242e6 / cert.quasi_static_peak - 1,
                                cert.peak_error * 8.980 / 8.718, rtol=1e-12)
     assert "from the quasi-static peak" in str(cert)
+
+
+def test_curve_stages_of_a_piecewise_curve():
+    """jdem.lab.curve_stages on a curve whose four stages are known (002 Fig 10):
+    linear to 5.9 MPa at 200e-6 (E 29.5 GPa), a parabolic rise to its peak
+    (7.375 MPa) at 300e-6, a straight fall to 1 MPa at 400e-6, then a flat
+    residual stage;
+    bonds break from 250e-6 on, 40 % of them in tension."""
+    e = np.linspace(0.0, 1e-3, 2001)
+    E, e1, s1, e2, e3, s3 = 29.5e9, 200e-6, 5.9e6, 300e-6, 400e-6, 1e6
+    # rise: s1 + E (e - e1) - c (e - e1)^2 with zero slope at e2
+    c = E / (2 * (e2 - e1))
+    s2 = s1 + E * (e2 - e1) / 2
+    rise = s1 + E * (e - e1) - c * (e - e1) ** 2
+    s = np.where(e <= e1, E * e, np.where(e <= e2, rise, np.where(
+        e <= e3, s2 + (s3 - s2) * (e - e2) / (e3 - e2), s3)))
+    assert np.max(s) == pytest.approx(s1 + E * (e2 - e1) / 2)   # the peak the rise reaches
+    broken = np.where(e >= 250e-6, np.round((e - 250e-6) * 4e6), 0).astype(int)
+    hist = dict(axial_strain=e, axial_stress=s, n_broken=broken,
+                n_tension=(0.4 * broken).astype(int), n_shear=broken - (0.4 * broken).astype(int))
+    st = lab.curve_stages(hist)
+    peak = s1 + E * (e2 - e1) / 2
+    assert st["peak_stress"] == pytest.approx(peak) and st["peak_strain"] == pytest.approx(e2)
+    # 1 % below the line E e: c x^2 = 0.01 E (e1 + x), x = e - e1, i.e.
+    # x^2 - 2e-6 x - 4e-10 = 0: x = 21.0e-6
+    x = (2e-6 + np.sqrt(4e-12 + 1.6e-9)) / 2
+    assert st["linear_end_strain"] == pytest.approx(e1 + x, abs=1e-6)
+    assert st["rise_ratio"] == pytest.approx((e2 - e1 - x) / (e1 + x), rel=0.02)
+    assert st["first_break_strain"] == pytest.approx(250.5e-6, abs=1e-6)
+    assert st["descent_modulus"] == pytest.approx((s3 - peak) / (e3 - e2), rel=1e-6)
+    assert st["residual_stress"] == pytest.approx(s3, rel=2e-3)   # from a windowed start
+    assert e3 - 50e-6 <= st["residual_strain"] <= e3
+    k = int(np.argmax(s))
+    assert st["n_tension_at_peak"] == hist["n_tension"][k]
+    assert st["n_shear_end"] == hist["n_shear"][-1]
+    batched = {key: np.stack([v, v]) for key, v in hist.items()}
+    assert np.all(lab.curve_stages(batched)["peak_stress"] == st["peak_stress"])

@@ -22,8 +22,8 @@ from jdem.lab.core import (LabResult, LabTest, Plan, Setup, checked_curve, curve
 from jdem.lab.damping import Damping, local, smooth  # noqa: F401
 from jdem.lab.platen import BIAXIAL, BRAZILIAN, TRIAXIAL, UCS, PlatenFrame  # noqa: F401
 from jdem.lab.tension import TENSION  # noqa: F401
-from jdem.lab.summary import (Certificate, fit_modulus, kinetic_ratio, peak_summary,  # noqa: F401
-                              rate_extrapolated)
+from jdem.lab.summary import (Certificate, curve_stages, fit_modulus,  # noqa: F401
+                              kinetic_ratio, peak_summary, rate_extrapolated)
 from jdem.lab.certify import (certify, extrapolated_curve, extrapolated_history,  # noqa: F401
                               peak_strain, quasi_static_history, slowed)
 from jdem.lab.pattern import damage_map, failure_pattern, first_breaks  # noqa: F401

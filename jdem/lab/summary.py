@@ -6,6 +6,8 @@ Citations ("000 §2.3") refer to the documents listed in REFERENCES.md.
   stress against strain over the pre-peak records with 10 %..40 % of the peak.
 * :func:`peak_summary` -- peak stress, critical strain, modulus, Poisson ratio,
   fracture degree, and the in-run quasi-static indicator.
+* :func:`curve_stages` -- the four stages of a compression curve (002 Fig 10)
+  and the broken bonds by mode at the peak and at the end.
 * The quasi-static certificate (000 §2.3, §3.2: dynamic relaxation seeks the
   static solution; the curve should not depend on how fast it was reached):
   :func:`kinetic_ratio` is the cheap in-run indicator (kinetic over strain
@@ -103,6 +105,86 @@ def peak_summary(history: dict, *, window=MODULUS_WINDOW) -> dict:
                kinetic_ratio=kinetic_ratio(history))
     if "tensile_strength_indirect" in history:
         out["tensile_strength"] = float(np.max(history["tensile_strength_indirect"]))
+    return out
+
+
+def curve_stages(history: dict, *, linear_deviation=0.01, residual_rate=0.1,
+                 window=MODULUS_WINDOW) -> dict:
+    """The four stages of a uniaxial compression curve (002 §2.2, Fig 10, 15):
+    linear rise (elastic, no break), non-linear rise (damage spreading), non-linear
+    descent (the main fracture running through) and the slowly varying residual
+    stage (sliding on the fracture).  One (unbatched) history; a batched one
+    gives arrays over its members.
+
+    linear_end_stress, linear_end_strain  the first record past the modulus window
+        whose stress falls ``linear_deviation`` (1 %) below the line fitted there
+        (:func:`fit_modulus`, with its intercept)
+    first_break_stress, first_break_strain  the first record with a broken bond
+    peak_stress, peak_strain
+    rise_ratio  the non-linear rise over the linear one, (eps_peak - eps_lin) /
+        eps_lin (002: about 0.2 at kappa = 0, above 2 at kappa = 2.4 %)
+    residual_strain, residual_stress  the first record after the peak from which
+        the stress falls, averaged over the next 5 % of the strain range, slower
+        than ``residual_rate`` (10 %) of the steepest such fall, and the mean
+        stress from there on; NaN while the curve is still falling at its end
+    descent_modulus  the steepest fall of the descent [Pa] (negative)
+    n_tension_at_peak, n_shear_at_peak, n_tension_end, n_shear_end  broken bonds
+        by mode (002 Fig 12), where the history records them
+    """
+    stress = np.asarray(history["axial_stress"], np.float64)
+    if stress.ndim == 2:
+        rows = [curve_stages(member(history, b), linear_deviation=linear_deviation,
+                             residual_rate=residual_rate, window=window)
+                for b in range(stress.shape[0])]
+        return {k: np.asarray([r[k] for r in rows]) for k in rows[0]}
+    strain = np.asarray(history["axial_strain"], np.float64)
+    ok = np.isfinite(stress)
+    stress, strain = stress[ok], strain[ok]
+    nan = float("nan")
+    k = int(np.argmax(stress))
+    peak = float(stress[k])
+    out = dict(linear_end_stress=nan, linear_end_strain=nan, first_break_stress=nan,
+               first_break_strain=nan, peak_stress=peak, peak_strain=float(strain[k]),
+               rise_ratio=nan, residual_strain=nan, residual_stress=nan, descent_modulus=nan)
+    s, e = stress[:k + 1], strain[:k + 1]
+    sel = (s >= window[0] * peak) & (s <= window[1] * peak)
+    if sel.sum() >= 3:
+        slope, intercept = np.polyfit(e[sel], s[sel], 1)
+        line = slope * e + intercept
+        past = np.flatnonzero((e > e[sel].max()) & (s < (1.0 - linear_deviation) * line))
+        j = int(past[0]) if past.size else k
+        out.update(linear_end_stress=float(s[j]), linear_end_strain=float(e[j]))
+        if e[j] > 0:
+            out["rise_ratio"] = float((e[k] - e[j]) / e[j])
+    broken = np.asarray(history.get("n_broken", np.zeros(ok.size)))[ok]
+    first = np.flatnonzero(broken > 0)
+    if first.size:
+        out.update(first_break_stress=float(stress[first[0]]),
+                   first_break_strain=float(strain[first[0]]))
+    # the descent: the fall of the stress over a strain window of 5 % of the range
+    span = 0.05 * (strain[-1] - strain[0])
+    after = np.arange(k, stress.size)
+    if span > 0 and after.size > 2:
+        ahead = np.searchsorted(strain, strain[after] + span)
+        full = ahead < stress.size
+        if full.any():
+            a, b = after[full], ahead[full]
+            rate = (stress[b] - stress[a]) / (strain[b] - strain[a])
+            steepest = float(np.min(rate))
+            out["descent_modulus"] = steepest
+            if steepest < 0:
+                m = int(np.argmin(rate))
+                slow = np.flatnonzero((np.arange(rate.size) > m) & (rate > residual_rate
+                                                                    * steepest))
+                if slow.size:
+                    r = int(a[slow[0]])
+                    out.update(residual_strain=float(strain[r]),
+                               residual_stress=float(np.mean(stress[r:])))
+    for mode in ("tension", "shear"):
+        key = f"n_{mode}"
+        if key in history:
+            n = np.asarray(history[key])[ok]
+            out[f"{key}_at_peak"], out[f"{key}_end"] = int(n[k]), int(n[-1])
     return out
 
 
