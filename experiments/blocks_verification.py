@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""The block method's verification cases (000 ch. 2, 3, §9.2.1), as figures.
+"""The block method's verification cases (000 ch. 2, 3, §9.2.1, §9.2.2), as figures.
 
     python experiments/blocks_verification.py            # full grids
     python experiments/blocks_verification.py --small    # coarse grids (a few minutes)
@@ -17,6 +17,9 @@
 4. A jointed rock mass (two joint sets cut a 4 m x 2 m region) settling onto a
    fixed floor, coloured by speed, and its contact points by state (sticking,
    sliding, glued) with their normal forces.
+5. The jointed basalt of 000 §9.2.2 under the book's biaxial cycle: staggered,
+   square grid, and the grid with point stiffnesses only, against eq 9-7, 9-8 in
+   the rigid-block limit.
 
 Writes PNGs, ``blocks_verification.h5`` (jdem.io; reopen with
 ``jdem.io.load_history``) and ``results.md`` to experiments/results/blocks/
@@ -95,6 +98,28 @@ def jointed_mass(n_steps):
                                 steps=n_steps, wall_s=wall, max_speed=speed)
 
 
+def basalt_cycle():
+    """000 §9.2.2: the jointed basalt (staggered, square grid, and the grid with point
+    stiffnesses only) held at 5 MPa along its rows and cycled 2 -> 10 -> 2 MPa
+    across them; secant moduli per level against eq 9-7, 9-8 in the rigid limit."""
+    joints = {k: v for k, v in cases.BASALT_JOINTS.items() if k != "spacing"}
+    theory = cases.jointed_mass_moduli_rigid(**joints, s_s=0.2, s_n=0.2)
+    sigma_n = np.array([2.0, 4.0, 6.0, 8.0, 10.0, 8.0, 6.0, 4.0, 2.0]) * 1e6
+    runs = {}
+    for name, stagger, face in (("staggered", True, True), ("grid", False, True),
+                                ("grid, point stiffness only", False, False)):
+        case = cases.jointed_mass(4, 5, stagger=stagger)
+        if not face:
+            p = case.params
+            case = case._replace(params=p._replace(kn_face=jnp.zeros_like(p.kn_face),
+                                                   ks_face=jnp.zeros_like(p.ks_face)))
+        eps, _ = cases.load_jointed_mass(case, sigma_n, np.full(sigma_n.size, 5e6),
+                                         steps_per_level=3000)
+        runs[name] = dict(eps_n=eps[:, 0], eps_s=eps[:, 1],
+                          E_n=np.diff(sigma_n) / np.diff(eps[:, 0]), E_s=5e6 / eps[:, 1])
+    return dict(sigma_n=sigma_n, runs=runs, **theory)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--small", action="store_true", help="coarse grids")
@@ -135,6 +160,11 @@ def main(argv=None):
 
     mass_state, mass_params, mass_hist, mass_info = jointed_mass(30000 if args.small else 60000)
     print("jointed mass", mass_info, flush=True)
+
+    basalt = basalt_cycle()
+    for name, b in basalt["runs"].items():
+        print(f"basalt {name}: E_n / (k_nh s_n) {np.round(b['E_n'] / basalt['E_n'], 4)}, "
+              f"E_s / (k_nv s_s) {np.round(b['E_s'] / basalt['E_s'], 4)}", flush=True)
 
     # ---- figures
     fig, ax = plt.subplots(figsize=(5, 3.5))
@@ -191,6 +221,19 @@ def main(argv=None):
     fig.savefig(out / "jointed_mass.png", dpi=120)
     plt.close("all")
 
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    for name, b in basalt["runs"].items():
+        ax.plot(b["eps_n"] * 1e6, basalt["sigma_n"] / 1e6, "o-", ms=3, label=name)
+    e0 = basalt["runs"]["grid"]["eps_n"][0]
+    ee = np.array([e0, e0 + 8e6 / basalt["E_n"]])
+    ax.plot(ee * 1e6, [2.0, 10.0], "k--", lw=1, label="E_n = k_nh s_n (eq 9-7, rigid limit)")
+    ax.set(xlabel="strain across the horizontal joints [1e-6]", ylabel="σ_n [MPa]",
+           title="jointed basalt, 5 MPa along the rows (000 §9.2.2)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "jointed_basalt.png", dpi=120)
+    plt.close("all")
+
     history = dict(incline_slope=slopes, incline_accel=acc, incline_accel_theory=acc_theory,
                    regime_ratio=ratios, regime_slope=rslopes, regime_sim=sim,
                    regime_theory=theory, wave_ratio=x,
@@ -200,7 +243,10 @@ def main(argv=None):
                    wave_R_lattice=np.array([d["R_lattice"] for d in waves]),
                    wave_T_continuum=np.array([d["T_continuum"] for d in waves]),
                    wave_R_continuum=np.array([d["R_continuum"] for d in waves]),
-                   mass_pos=mass_hist["pos"], mass_angle=mass_hist["angle"])
+                   mass_pos=mass_hist["pos"], mass_angle=mass_hist["angle"],
+                   basalt_sigma_n=basalt["sigma_n"],
+                   **{f"basalt_{name.split(',')[0]}{'_point' if ',' in name else ''}_{k}": v
+                      for name, b in basalt["runs"].items() for k, v in b.items()})
     attrs = dict(command=" ".join([pathlib.Path(sys.argv[0]).name] + list(argv or sys.argv[1:])),
                  date=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                  machine=f"{platform.node()} {platform.processor() or platform.machine()}",
@@ -222,6 +268,14 @@ def main(argv=None):
     lines += [f"| {r} | {d['T']:.4f} | {d['T_lattice']:.4f} | {d['T_continuum']:.4f} | "
               f"{d['R']:.4f} | {d['R_lattice']:.4f} | {d['R_continuum']:.4f} |"
               for r, d in zip(wave_ratios, waves)]
+    lines += ["", "Jointed basalt of 000 §9.2.2 (4 x 5 blocks of 20 cm, the book's joint "
+              "stiffnesses, rollers at base and wall), 5 MPa along the rows, σ_n 2 → 10 → 2 MPa: "
+              f"moduli between levels over E_n = k_nh s_n = {basalt['E_n'] / 1e9:.1f} GPa and "
+              f"E_s = k_nv s_s = {basalt['E_s'] / 1e9:.1f} GPa (eq 9-7, 9-8, rigid limit).", "",
+              "| joints | E_n / (k_nh s_n) per step | E_s / (k_nv s_s) per level |", "|---|---|---|"]
+    lines += [f"| {name} | {', '.join(f'{x:.4f}' for x in b['E_n'] / basalt['E_n'])} | "
+              f"{', '.join(f'{x:.4f}' for x in b['E_s'] / basalt['E_s'])} |"
+              for name, b in basalt["runs"].items()]
     lines += ["", f"Jointed mass: {mass_info['blocks']} blocks, {mass_info['steps']} steps in "
               f"{mass_info['wall_s']:.1f} s (compile included); floor and walls carry "
               f"{mass_info['reaction'] / mass_info['weight']:.4f} of the weight; fastest block "
