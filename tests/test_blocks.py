@@ -516,20 +516,96 @@ def test_jointed_mass_under_the_books_biaxial_cycle(stagger):
         np.testing.assert_allclose(5e6 / eps[:, 1], theory["E_s"], rtol=1e-3)
 
 
-def test_point_stiffness_alone_lets_the_corners_of_a_square_grid_push():
-    """Why joints have a face stiffness: with the same springs as fixed point
-    stiffnesses, the grid's diagonal neighbours overlap in a sliver at each
-    four-block corner once the mass shortens both ways (000 fig 3-11), and each
-    sliver is an edge-edge contact of two full points: E_n comes out 2.3 x
-    k_nh s_n.  With face stiffness a sliver of length L carries k L / 2."""
+@pytest.mark.parametrize("corner_radius", [0.0, 0.002])
+def test_corners_of_a_square_grid_push_unless_faces_are_stiff_per_area_or_corners_round(
+        corner_radius):
+    """Why joints have a face stiffness or rounded corners: with the same springs
+    as fixed point stiffnesses and sharp corners, the grid's diagonal neighbours
+    overlap in a sliver at each four-block corner once the mass shortens both
+    ways (000 fig 3-11), and each sliver is an edge-edge contact of two full
+    points: E_n comes out 2.3 x k_nh s_n.  Corners rounded with 2 mm arcs (000
+    eq 3-34, 3-35, the book's other remedy) keep the diagonal neighbours apart:
+    E_n and E_s are the rigid-block values again."""
     theory = _basalt_rigid_moduli()
     case = cases.jointed_mass(4, 5, stagger=False)
     p = case.params
     case = case._replace(params=p._replace(kn_face=jnp.zeros_like(p.kn_face),
-                                           ks_face=jnp.zeros_like(p.ks_face)))
+                                           ks_face=jnp.zeros_like(p.ks_face),
+                                           corner_radius=jnp.asarray(corner_radius)))
     sigma_n = np.array([2.0, 10.0]) * 1e6
     eps, _ = cases.load_jointed_mass(case, sigma_n, np.full(2, 5e6), steps_per_level=3000)
-    assert (sigma_n[1] - sigma_n[0]) / (eps[1, 0] - eps[0, 0]) > 2.0 * theory["E_n"]
+    e_n = (sigma_n[1] - sigma_n[0]) / (eps[1, 0] - eps[0, 0])
+    if corner_radius == 0.0:
+        assert e_n > 2.0 * theory["E_n"]
+    else:
+        assert e_n == pytest.approx(theory["E_n"], rel=1e-3)
+        np.testing.assert_allclose(5e6 / eps[:, 1], theory["E_s"], rtol=1e-3)
+
+
+def test_rounded_corners_follow_eq_3_34_and_3_35():
+    """000 eq 3-34, 3-35 with arcs of radius R: two squares meeting corner to
+    corner across a diagonal gap g (in x and in y) touch along the diagonal with
+    the gap sqrt(2) (g + 2 R) - 2 R; a sliver overlap of the sharp corners is no
+    contact once rounded; flat faces keep their gap over the straight part of the
+    face (length L - 2 R); a turned square's corner meets a face with its arc."""
+    from jdem.blocks import detect
+
+    R = 0.01
+    pair = (jnp.array([0]), jnp.array([1]))
+    a = bk.rectangle(0.0, 0.0, 1.0, 1.0)
+    for g in (1e-3, -1e-3):
+        blocks = bk.make_blocks([a, bk.rectangle(1 + g, 1 + g, 1.0, 1.0)], 1.0)
+        geo = detect.pair_geometry(blocks, *pair, R)
+        assert bool(geo.exists[0, 0]) and not bool(geo.exists[0, 1])
+        assert float(geo.separation[0, 0]) == pytest.approx(np.sqrt(2) * (g + 2 * R) - 2 * R,
+                                                            rel=1e-9)
+        np.testing.assert_allclose(np.asarray(geo.normal[0]), [np.sqrt(0.5)] * 2, rtol=1e-9)
+        sharp = detect.pair_geometry(blocks, *pair)
+        assert (float(sharp.separation.min()) < 0) == (g < 0)
+    flat = bk.make_blocks([a, bk.rectangle(0.2, 0.999, 0.5, 0.5)], 1.0)
+    geo = detect.pair_geometry(flat, *pair, R)
+    np.testing.assert_allclose(np.asarray(geo.separation[0]), -1e-3, rtol=1e-9)
+    assert float(geo.length[0]) == pytest.approx(0.5 - 2 * R, rel=1e-9)
+    # eq 3-35: a square turned by 20 degrees, its sharp corner 5 mm into a base;
+    # the arc's centre lies R / sin(45 deg) from the corner on the bisector
+    c, s_ = np.cos(np.deg2rad(20.0)), np.sin(np.deg2rad(20.0))
+    square = np.array([[-0.2, -0.2], [0.2, -0.2], [0.2, 0.2], [-0.2, 0.2]]) @ np.array(
+        [[c, s_], [-s_, c]])
+    square[:, 1] -= square[:, 1].min() + 5e-3
+    low = square[np.argmin(square[:, 1])]
+    bisector = (np.mean(square, axis=0) - low) / np.linalg.norm(np.mean(square, axis=0) - low)
+    centre = low + np.sqrt(2) * R * bisector
+    blocks = bk.make_blocks([bk.rectangle(-1.0, -1.0, 2.0, 1.0), square], 1.0)
+    geo = detect.pair_geometry(blocks, *pair, R)
+    on = np.asarray(geo.exists[0]) & (np.asarray(geo.separation[0]) < 0)
+    assert on.sum() == 1
+    assert float(np.asarray(geo.separation[0])[on][0]) == pytest.approx(centre[1] - R, rel=1e-9)
+    assert centre[1] - R > -5e-3                  # shallower than the sharp corner
+    with pytest.raises(InputError, match="corner_radius"):
+        bk.recommended_timestep(blocks, bk.make_params(kn=1e8, corner_radius=0.2))
+
+
+def test_zero_corner_radius_as_an_array_is_the_sharp_geometry():
+    """The engine passes ``corner_radius`` as an array, so radius 0 runs the
+    rounding path: it must give the sharp geometry exactly, also for blocks with
+    fewer vertices than the padded capacity (padding repeats vertex 0)."""
+    from jdem.blocks import detect
+
+    polys = bk.cut_region(bk.rectangle(0.0, 0.0, 3.0, 2.0),
+                          [bk.JointSet(dip=30.0, spacing=0.35), bk.JointSet(100.0, 0.5)])
+    blocks = bk.make_blocks(polys, 2600.0)
+    counts = np.asarray(blocks.vert_valid).sum(axis=1)
+    assert counts.min() < blocks.vert_valid.shape[1]          # some rows padded
+    i, j = np.triu_indices(len(polys), 1)
+    # both compiled: eager and compiled runs differ at round-off, which flips the
+    # reference edge of pairs whose blocks touch exactly (separation 0)
+    sharp = jax.jit(lambda b, i, j: detect.pair_geometry(b, i, j))(
+        blocks, jnp.asarray(i), jnp.asarray(j))
+    zero = jax.jit(detect.pair_geometry)(blocks, jnp.asarray(i), jnp.asarray(j),
+                                         jnp.asarray(0.0))
+    for field in sharp._fields:
+        np.testing.assert_array_equal(np.asarray(getattr(zero, field)),
+                                      np.asarray(getattr(sharp, field)), err_msg=field)
 
 
 def test_face_stiffness_scales_with_the_contact_length():

@@ -36,7 +36,7 @@ import numpy as np
 
 from jdem import damping, neighbors
 from jdem.blocks import detect, joint
-from jdem.blocks.geometry import Blocks
+from jdem.blocks.geometry import Blocks, world_vertices
 from jdem.kinematics import cross_r_f, cross_w_r, segment_add
 from jdem.simulate import SimulationDiverged
 from jdem.state import Config, Contacts
@@ -72,6 +72,9 @@ class BlockParams(NamedTuple):
                      friction angle of a point is atan(friction) + JRC log10(JCS /
                      sigma_n), sigma_n its normal force over its share of the
                      contact length (half the clipped face, unit thickness)
+    corner_radius    radius of the arcs that round every block corner [m] (000 eq
+                     3-34, 3-35, fig 3-12; :func:`jdem.blocks.detect.pair_geometry`);
+                     0: sharp corners
     contact_damping  ratio of critical damping of the normal and shear dashpots [-]
     local_damping    alpha of 000 eq 3-19 [-], 0 <= alpha < 1
     viscous_damping  mass-proportional damping c [1/s] (000 eq 3-9)
@@ -88,6 +91,7 @@ class BlockParams(NamedTuple):
     jcs: jnp.ndarray
     kn_face: jnp.ndarray
     ks_face: jnp.ndarray
+    corner_radius: jnp.ndarray
     contact_damping: jnp.ndarray
     local_damping: jnp.ndarray
     viscous_damping: jnp.ndarray
@@ -98,7 +102,7 @@ JOINT_TABLE = ("kn", "ks", "friction", "cohesion", "tension", "jrc", "jcs", "kn_
 
 
 def make_params(*, kn, ks=None, friction=0.5, cohesion=0.0, tension=0.0, jrc=0.0, jcs=1e8,
-                kn_face=0.0, ks_face=None, contact_damping=0.0,
+                kn_face=0.0, ks_face=None, corner_radius=0.0, contact_damping=0.0,
                 local_damping=0.0, viscous_damping=0.0, gravity=(0.0, -9.81), dt=None,
                 dtype=None) -> BlockParams:
     """Block parameters with checks.
@@ -132,8 +136,8 @@ def make_params(*, kn, ks=None, friction=0.5, cohesion=0.0, tension=0.0, jrc=0.0
         raise InputError(f"block parameter jcs must be > 0, got {arrays['jcs'].tolist()}")
     if np.any(arrays["kn"] <= 0):
         raise InputError(f"block parameter kn must be > 0, got {arrays['kn'].tolist()}")
-    scalars = dict(contact_damping=contact_damping, local_damping=local_damping,
-                   viscous_damping=viscous_damping)
+    scalars = dict(corner_radius=corner_radius, contact_damping=contact_damping,
+                   local_damping=local_damping, viscous_damping=viscous_damping)
     for name, v in scalars.items():
         v = float(v)
         if not np.isfinite(v) or v < 0:
@@ -204,7 +208,7 @@ def contact_forces(state: BlockState, params: BlockParams):
     ``contacts`` with the updated history.  Gravity and loads are not included.
     """
     b, c = state.blocks, state.contacts
-    g = detect.pair_geometry(b, c.i, c.j)
+    g = detect.pair_geometry(b, c.i, c.j, params.corner_radius)
     shear_old = c.shear[:, :2]
     intact_old = c.shear[:, 2:] > 0.5
     active = c.valid[:, None] & g.exists & ((g.separation < 0) | intact_old)
@@ -296,7 +300,7 @@ def glue_joints(state: BlockState, params: BlockParams, config: Config,
            non-persistent joint set (:func:`jdem.blocks.generate.bridge_mask`)
     """
     c = neighbors.build(state.contacts, detect.bounding_circles(state.blocks), config)
-    g = detect.pair_geometry(state.blocks, c.i, c.j)
+    g = detect.pair_geometry(state.blocks, c.i, c.j, params.corner_radius)
     glued = c.valid[:, None] & g.exists & (g.separation <= tolerance)
     if where is not None:
         glued = glued & jnp.asarray(where(np.asarray(g.point), np.asarray(g.normal)))
@@ -332,7 +336,24 @@ def critical_timestep(blocks: Blocks, params: BlockParams, *, points=None):
 
 
 def recommended_timestep(blocks: Blocks, params: BlockParams, safety=0.5) -> float:
-    """``safety`` times :func:`critical_timestep` (host float)."""
+    """``safety`` times :func:`critical_timestep` (host float).  Also checks that
+    the corners' arcs fit the blocks: ``corner_radius`` below half the inradius
+    2 A / P of every block (else a rounded core would turn inside out)."""
+    r = float(params.corner_radius)
+    if r > 0:
+        keep = np.asarray(blocks.valid)
+        w = np.asarray(world_vertices(blocks))[keep]
+        vv = np.asarray(blocks.vert_valid)[keep]
+        inradius = []
+        for verts, ok in zip(w, vv):
+            v = verts[ok]
+            edge = np.roll(v, -1, axis=0) - v
+            area = 0.5 * abs(np.sum(v[:, 0] * edge[:, 1] - v[:, 1] * edge[:, 0]))
+            inradius.append(2.0 * area / np.sum(np.linalg.norm(edge, axis=1)))
+        if r >= 0.5 * min(inradius):
+            raise InputError(f"block parameter corner_radius = {r!r} m does not fit the "
+                             f"smallest block (half its inradius 2 A / P is "
+                             f"{0.5 * min(inradius):.3g} m)")
     return float(safety * critical_timestep(blocks, params))
 
 

@@ -103,14 +103,85 @@ def _clip(p, q, t, lo, hi):
     return s0, s1
 
 
-def pair_geometry_one(verts_i, valid_i, verts_j, valid_j, scale):
+def rounded_core(verts, valid, radius):
+    """The core of a convex polygon (V, 2) whose corners are rounded with arcs of
+    ``radius`` [m] (000 fig 3-12): every edge moved inward by the radius, each
+    vertex to the meeting point of its two moved edges (the centre of its arc,
+    on the bisector).  The rounded block is the core grown by the radius."""
+    # the neighbours of each valid vertex (valid vertices come first, padding after)
+    count = jnp.sum(valid)
+    idx = jnp.arange(verts.shape[0])
+    prev = jnp.where(idx == 0, count - 1, idx - 1)
+    nxt = jnp.where(idx == count - 1, 0, idx + 1)
+    e_out = verts[nxt] - verts
+    e_in = verts - verts[prev]
+
+    def inward(e):
+        length = jnp.sqrt(jnp.sum(e * e, axis=-1, keepdims=True))
+        return jnp.stack([-e[:, 1], e[:, 0]], axis=-1) / jnp.where(length > 0, length, 1.0)
+
+    n1, n2 = inward(e_in), inward(e_out)              # CCW: the left normal points in
+    cos = jnp.sum(n1 * n2, axis=-1, keepdims=True)
+    shift = radius * (n1 + n2) / jnp.maximum(1.0 + cos, 1e-12)
+    core = verts + shift
+    # padding rows repeat vertex 0 (jdem.blocks.geometry), so that the last valid
+    # edge closes the polygon: keep them on the core's vertex 0
+    return jnp.where(valid[:, None], core, core[0])
+
+
+def _closest_vertices(verts_i, valid_i, verts_j, valid_j):
+    """The closest pair of vertices of two polygons: (distance, unit vector from
+    the vertex of i to that of j, the vertex of i, the vertex of j)."""
+    d = verts_j[None, :, :] - verts_i[:, None, :]
+    dist = jnp.sqrt(jnp.sum(d * d, axis=-1))
+    dist = jnp.where(valid_i[:, None] & valid_j[None, :], dist, jnp.inf)
+    k = jnp.argmin(dist)
+    a, b = k // verts_j.shape[0], k % verts_j.shape[0]
+    best = dist[a, b]
+    return best, d[a, b] / jnp.where(best > 0, best, 1.0), verts_i[a], verts_j[b]
+
+
+def pair_geometry_one(verts_i, valid_i, verts_j, valid_j, scale, corner_radius=0.0):
     """Contact geometry of one pair of convex polygons (world vertices (V, 2)).
 
     ``scale`` [m] sets the tie-break between two equally good reference edges
     (block i's edge is kept unless j's is better by 1e-6 scale), so that the
-    choice does not flip at round-off.  Returns the fields of :class:`PairGeometry`
+    choice does not flip at round-off.  ``corner_radius`` [m] rounds every
+    corner (000 eq 3-34, 3-35): the cores (:func:`rounded_core`) are clipped as
+    below and every gap is the cores' gap less twice the radius, so flat faces
+    touch as before (over the straight part of the face) while a corner meets a
+    face with its arc (eq 3-35); where the clipped contact of the cores is empty
+    (two corners meeting, 000 fig 3-11), the contact is one point on the line
+    joining the two nearest arc centres, with the gap |C1 C2| - 2 R (eq 3-34).  Returns the fields of :class:`PairGeometry`
     for one pair.
     """
+    if not (isinstance(corner_radius, (int, float)) and corner_radius == 0.0):
+        verts_i = rounded_core(verts_i, valid_i, corner_radius)
+        verts_j = rounded_core(verts_j, valid_j, corner_radius)
+    normal, mid, sep, exists, length = _clipped_contact(verts_i, valid_i, verts_j, valid_j,
+                                                        scale)
+    if isinstance(corner_radius, (int, float)) and corner_radius == 0.0:
+        return normal, mid, sep, exists, length
+    # corner meets corner: the cores are apart and the incident edge clipped to the
+    # reference edge's extent is empty, so no vertex faces an edge: the nearest
+    # features are two vertices (000 fig 3-11, eq 3-34)
+    d_vv, n_vv, ci, cj = _closest_vertices(verts_i, valid_i, verts_j, valid_j)
+    si, _, ni, oki = _edges(verts_i, valid_i)
+    sj, _, nj, okj = _edges(verts_j, valid_j)
+    apart = jnp.maximum(_max_separation(si, ni, oki, verts_j, valid_j)[0],
+                        _max_separation(sj, nj, okj, verts_i, valid_i)[0]) > 0
+    corner = (corner_radius > 0) & apart & ~jnp.any(exists)
+    vv_point = jnp.stack([0.5 * (ci + cj), 0.5 * (ci + cj)])
+    normal = jnp.where(corner, n_vv, normal)
+    mid = jnp.where(corner, vv_point, mid)
+    sep = jnp.where(corner, jnp.stack([d_vv, jnp.inf]), sep) - 2.0 * corner_radius
+    exists = jnp.where(corner, jnp.array([True, False]), exists)
+    length = jnp.where(corner, 0.0, length)
+    return normal, mid, sep, exists, length
+
+
+def _clipped_contact(verts_i, valid_i, verts_j, valid_j, scale):
+    """The clipped reference-edge contact of two convex polygons (module docstring)."""
     si, ei, ni, oki = _edges(verts_i, valid_i)
     sj, ej, nj, okj = _edges(verts_j, valid_j)
     sep_i, ki = _max_separation(si, ni, oki, verts_j, valid_j)
@@ -140,10 +211,11 @@ def pair_geometry_one(verts_i, valid_i, verts_j, valid_j, scale):
     return normal, mid, sep, jnp.stack([exists, exists & (s1 > s0)]), length
 
 
-def pair_geometry(blocks: Blocks, i, j) -> PairGeometry:
-    """:func:`pair_geometry_one` for the pairs (i, j) (C,) of a list."""
+def pair_geometry(blocks: Blocks, i, j, corner_radius=0.0) -> PairGeometry:
+    """:func:`pair_geometry_one` for the pairs (i, j) (C,) of a list; corners
+    rounded with ``corner_radius`` [m] (0: sharp)."""
     w = world_vertices(blocks)
     scale = blocks.radius[i] + blocks.radius[j]
-    n, pt, sep, ex, length = jax.vmap(pair_geometry_one)(
-        w[i], blocks.vert_valid[i], w[j], blocks.vert_valid[j], scale)
+    n, pt, sep, ex, length = jax.vmap(pair_geometry_one, in_axes=(0, 0, 0, 0, 0, None))(
+        w[i], blocks.vert_valid[i], w[j], blocks.vert_valid[j], scale, corner_radius)
     return PairGeometry(normal=n, point=pt, separation=sep, exists=ex, length=length)
