@@ -133,11 +133,10 @@ def _closest_vertices(verts_i, valid_i, verts_j, valid_j):
     """The closest pair of vertices of two polygons: (distance, unit vector from
     the vertex of i to that of j, the vertex of i, the vertex of j)."""
     d = verts_j[None, :, :] - verts_i[:, None, :]
-    dist = jnp.sqrt(jnp.sum(d * d, axis=-1))
-    dist = jnp.where(valid_i[:, None] & valid_j[None, :], dist, jnp.inf)
-    k = jnp.argmin(dist)
+    dist2 = jnp.where(valid_i[:, None] & valid_j[None, :], jnp.sum(d * d, axis=-1), jnp.inf)
+    k = jnp.argmin(dist2)
     a, b = k // verts_j.shape[0], k % verts_j.shape[0]
-    best = dist[a, b]
+    best = jnp.sqrt(dist2[a, b])
     return best, d[a, b] / jnp.where(best > 0, best, 1.0), verts_i[a], verts_j[b]
 
 
@@ -155,33 +154,35 @@ def pair_geometry_one(verts_i, valid_i, verts_j, valid_j, scale, corner_radius=0
     joining the two nearest arc centres, with the gap |C1 C2| - 2 R (eq 3-34).  Returns the fields of :class:`PairGeometry`
     for one pair.
     """
-    if not (isinstance(corner_radius, (int, float)) and corner_radius == 0.0):
-        verts_i = rounded_core(verts_i, valid_i, corner_radius)
-        verts_j = rounded_core(verts_j, valid_j, corner_radius)
-    normal, mid, sep, exists, length = _clipped_contact(verts_i, valid_i, verts_j, valid_j,
-                                                        scale)
     if isinstance(corner_radius, (int, float)) and corner_radius == 0.0:
-        return normal, mid, sep, exists, length
+        return _clipped_contact(verts_i, valid_i, verts_j, valid_j, scale)[:5]
+    return _contact_of_cores(rounded_core(verts_i, valid_i, corner_radius), valid_i,
+                             rounded_core(verts_j, valid_j, corner_radius), valid_j, scale,
+                             corner_radius)
+
+
+def _contact_of_cores(core_i, valid_i, core_j, valid_j, scale, radius):
+    """:func:`pair_geometry_one` for blocks rounded with ``radius``, given their
+    cores (:func:`rounded_core`)."""
+    normal, mid, sep, exists, length, apart = _clipped_contact(core_i, valid_i, core_j,
+                                                               valid_j, scale)
     # corner meets corner: the cores are apart and the incident edge clipped to the
     # reference edge's extent is empty, so no vertex faces an edge: the nearest
     # features are two vertices (000 fig 3-11, eq 3-34)
-    d_vv, n_vv, ci, cj = _closest_vertices(verts_i, valid_i, verts_j, valid_j)
-    si, _, ni, oki = _edges(verts_i, valid_i)
-    sj, _, nj, okj = _edges(verts_j, valid_j)
-    apart = jnp.maximum(_max_separation(si, ni, oki, verts_j, valid_j)[0],
-                        _max_separation(sj, nj, okj, verts_i, valid_i)[0]) > 0
-    corner = (corner_radius > 0) & apart & ~jnp.any(exists)
+    d_vv, n_vv, ci, cj = _closest_vertices(core_i, valid_i, core_j, valid_j)
+    corner = (radius > 0) & apart & ~jnp.any(exists)
     vv_point = jnp.stack([0.5 * (ci + cj), 0.5 * (ci + cj)])
     normal = jnp.where(corner, n_vv, normal)
     mid = jnp.where(corner, vv_point, mid)
-    sep = jnp.where(corner, jnp.stack([d_vv, jnp.inf]), sep) - 2.0 * corner_radius
+    sep = jnp.where(corner, jnp.stack([d_vv, jnp.inf]), sep) - 2.0 * radius
     exists = jnp.where(corner, jnp.array([True, False]), exists)
     length = jnp.where(corner, 0.0, length)
     return normal, mid, sep, exists, length
 
 
 def _clipped_contact(verts_i, valid_i, verts_j, valid_j, scale):
-    """The clipped reference-edge contact of two convex polygons (module docstring)."""
+    """The clipped reference-edge contact of two convex polygons (module docstring):
+    normal, points, gaps, exists, length, and whether a separating axis exists."""
     si, ei, ni, oki = _edges(verts_i, valid_i)
     sj, ej, nj, okj = _edges(verts_j, valid_j)
     sep_i, ki = _max_separation(si, ni, oki, verts_j, valid_j)
@@ -208,14 +209,22 @@ def _clipped_contact(verts_i, valid_i, verts_j, valid_j, scale):
     length = jnp.where(exists, jnp.abs(s1 - s0) * jnp.sqrt(jnp.sum((q - p) ** 2)), 0.0)
     # the reference normal points out of the reference block into the other
     normal = jnp.where(flip, -ref_n, ref_n)
-    return normal, mid, sep, jnp.stack([exists, exists & (s1 > s0)]), length
+    apart = jnp.maximum(sep_i, sep_j) > 0
+    return normal, mid, sep, jnp.stack([exists, exists & (s1 > s0)]), length, apart
 
 
 def pair_geometry(blocks: Blocks, i, j, corner_radius=0.0) -> PairGeometry:
     """:func:`pair_geometry_one` for the pairs (i, j) (C,) of a list; corners
     rounded with ``corner_radius`` [m] (0: sharp)."""
     w = world_vertices(blocks)
+    valid = blocks.vert_valid
     scale = blocks.radius[i] + blocks.radius[j]
-    n, pt, sep, ex, length = jax.vmap(pair_geometry_one, in_axes=(0, 0, 0, 0, 0, None))(
-        w[i], blocks.vert_valid[i], w[j], blocks.vert_valid[j], scale, corner_radius)
+    if isinstance(corner_radius, (int, float)) and corner_radius == 0.0:
+        n, pt, sep, ex, length = jax.vmap(pair_geometry_one)(w[i], valid[i], w[j], valid[j],
+                                                             scale)
+    else:
+        # each block's core once, not once per pair
+        core = jax.vmap(rounded_core, in_axes=(0, 0, None))(w, valid, corner_radius)
+        n, pt, sep, ex, length = jax.vmap(_contact_of_cores, in_axes=(0,) * 5 + (None,))(
+            core[i], valid[i], core[j], valid[j], scale, corner_radius)
     return PairGeometry(normal=n, point=pt, separation=sep, exists=ex, length=length)
