@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 import jdem
-from jdem import integrate, timestep
+from jdem import contact, integrate, timestep
 from jdem.bond import bond_geometry, bond_strain_energy, create_bonds
 
 R = 0.5
@@ -337,3 +337,172 @@ def test_chain_critical_step():
     assert growth[1.05] > 1e12
     crit = float(timestep.critical_timestep(state, _params(2, 1e-6), config))
     assert 0.7 * limit <= crit <= 0.95 * limit
+
+
+# ------------------------------------------------------------------ contacts and the bound's form
+# The systems above have R = 0.5 and bars of length 2R = 1, where a misplaced
+# factor of R or L (x R vs / R) leaves the numbers unchanged; these use unequal
+# radii away from 0.5 m and compare with the module docstring's bound term by term.
+RA, RB = 0.02, 0.03                      # m
+KN, KS = 2e7, 8e6                        # N/m, linear contact law
+
+
+def _contact_pair(fixed_vel, fixed_rot, overlap=1e-4):
+    """Two discs RA, RB touching with ``overlap`` along x (linear law)."""
+    parts = jdem.make_particles(np.array([[0.0, 0.0], [RA + RB - overlap, 0.0]]), [RA, RB],
+                                density=RHO, fixed_vel=fixed_vel, fixed_rot=fixed_rot)
+    return jdem.make_state(parts)
+
+
+def _contact_params(dt, **kw):
+    return jdem.make_params(dim=2, dt=dt, kn=KN, ks=KS, friction=0.5, **kw)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _spin_chunk(state, params, config):
+    def body(s, _):
+        s = integrate.step(s, params, config)
+        p = s.particles
+        return s, 0.5 * jnp.sum(p.inertia * p.angvel ** 2)
+
+    return jax.lax.scan(body, state, None, length=CHUNK)[1]
+
+
+def test_contact_pair_critical_step_unequal_discs():
+    """Two discs of radii a = 0.02, b = 0.03 m on a linear contact (k_n, k_s).
+
+    Rotation (both centres held, both free to spin): the shear spring stretches by
+    u_s = a' th_a + b' th_b (a', b' the arms to the mid-overlap contact point,
+    000 fig 4-4), so I th'' = -k_s (a', b')^T (a', b') th, one mode with
+    omega^2 = k_s (a'^2 / I_a + b'^2 / I_b).  The centred step is stable below
+    2 / omega: at 0.95 of it the spin energy stays bounded, at 1.05 it grows.
+    ``critical_timestep`` is the docstring's bound, the smaller over the two discs
+    of 2 / sqrt(2 k_s r (a + b) / I) (radius r, arm a + b), and lies below 2 / omega.
+
+    Translation (disc a held in place, b free, spins held): the bound is
+    2 / sqrt(2 (k_n + k_s) / m_b), with the contact dashpot c = 2 zeta sqrt(m* k_n)
+    (m* the reduced mass) and viscous damping g in the damped form; the held disc
+    a, lighter than b, is not counted.
+    """
+    held = np.ones((2, 2), bool)
+    state, config = _contact_pair(held, np.array([False, False]))
+    p = state.particles
+    inertia = np.asarray(p.inertia)
+    arm = np.array([RA, RB]) - 0.5e-4
+    omega = np.sqrt(KS * np.sum(arm ** 2 / inertia))
+    for factor, grows in ((0.95, False), (1.05, True)):
+        spun = state._replace(particles=p._replace(angvel=jnp.array([1e-3, 0.0])))
+        energy = np.asarray(_spin_chunk(spun, _contact_params(factor * 2 / omega), config))
+        assert (np.max(energy[-50:]) / energy[0] > 1e6) == grows
+    crit = float(timestep.critical_timestep(state, _contact_params(1e-9), config))
+    bound = min(2 / np.sqrt(2 * KS * r * (RA + RB) / i_) for r, i_ in zip((RA, RB), inertia))
+    assert crit == pytest.approx(bound, rel=1e-12)
+    assert crit < 2 / omega
+
+    state, config = _contact_pair(np.array([[True, True], [False, False]]), np.ones(2, bool))
+    m = np.asarray(state.particles.mass)
+    m_eff = m[0] * m[1] / (m[0] + m[1])
+    for zeta, visc in ((0.0, 0.0), (0.4, 0.0), (0.4, 50.0)):
+        prm = _contact_params(1e-9, contact_damping=zeta, viscous_damping=visc)
+        crit = float(timestep.critical_timestep(state, prm, config))
+        g = 2 * (2 * zeta * np.sqrt(m_eff * KN)) / m[1] + visc
+        assert crit == pytest.approx(_damped_limit(2 * (KN + KS) / m[1], g), rel=1e-12)
+
+
+@pytest.mark.parametrize("radius", [0.5, 0.3])
+def test_bond_bound_counts_every_spring_and_dashpot(radius):
+    """The bonded pair's bound term by term (module docstring): translation
+    2 / sqrt(2 (K_n + K_s) / m) damped by 2 (c_n + c_s) / m + g, where both bar
+    dashpots are c = 2 zeta sqrt(m* K); rotation (a disc held in place, free to
+    spin) 2 / sqrt(2 (K_s L^2 / 4 + K_n I_b / A_c) / I), the shear spring at the
+    bar's mid point and the bending spring (002 eq 4), damped by the shear
+    dashpot at arm L / 2.  Radius 0.3 m makes L = 0.6 m, where L^2 and 1 / L^2
+    differ."""
+    pos = np.array([[0.0, 0.0], [2 * radius, 0.0]])
+    for fixed_vel, fixed_rot in ((np.array([[True] * 2, [False] * 2]), np.ones(2, bool)),
+                                 (np.ones((2, 2), bool), np.array([True, False]))):
+        parts = jdem.make_particles(pos, [radius] * 2, density=RHO, fixed_vel=fixed_vel,
+                                    fixed_rot=fixed_rot)
+        state, config = jdem.make_state(parts, bonds=create_bonds(parts, 2, gap_tolerance=1e-9))
+        g = bond_geometry(state.bonds, state.particles, _params(2, 1e-6), 2)
+        kn, ks, L = float(g.kn[0]), float(g.ks[0]), float(g.length[0])
+        assert L == pytest.approx(2 * radius, rel=1e-12)
+        m, inertia = float(parts.mass[1]), float(parts.inertia[1])
+        zeta, visc = 0.3, 20.0
+        cn, cs = (2 * zeta * np.sqrt(0.5 * m * k) for k in (kn, ks))
+        crit = float(timestep.critical_timestep(
+            state, _params(2, 1e-9, bond_damping=zeta, viscous_damping=visc), config))
+        if fixed_rot[1]:
+            expect = _damped_limit(2 * (kn + ks) / m, 2 * (cn + cs) / m + visc)
+        else:
+            k_rot = ks * L ** 2 / 4 + kn * float(g.I[0]) / float(g.area[0])
+            expect = _damped_limit(2 * k_rot / inertia, 2 * cs * L ** 2 / 4 / inertia + visc)
+        assert crit == pytest.approx(expect, rel=1e-12)
+
+
+def _hex_lattice(radius, overlap_ratio, rows=5, cols=5):
+    d = 2 * radius * (1 - 0.5 * overlap_ratio)           # centre spacing
+    pos = np.array([[d * (c + 0.5 * (r % 2)), d * np.sqrt(3) / 2 * r]
+                    for r in range(rows) for c in range(cols)])
+    parts = jdem.make_particles(pos, np.full(len(pos), radius), density=RHO)
+    return jdem.make_state(parts, contact_model="hertz")
+
+
+def test_nominal_step_equals_the_step_of_a_lattice_with_that_coordination():
+    """``nominal_critical_timestep`` assumes z like neighbours at an overlap of
+    ``overlap_ratio`` R (Hertz).  A hexagonal lattice of discs R = 0.01 m at that
+    overlap has z = 6 around its inner discs, which set its critical step: the
+    two agree, with contact dashpots and viscous damping on."""
+    radius, ratio = 0.01, 0.004
+    state, config = _hex_lattice(radius, ratio)
+    prm = jdem.make_params(dim=2, dt=1e-9, youngs=5e9, poisson=0.2)
+    count = contact.contact_forces(state.contacts, state.particles, prm, config)[3]
+    assert int(np.max(np.asarray(count))) == 6
+    for zeta, visc in ((0.0, 0.0), (0.3, 100.0)):
+        prm = jdem.make_params(dim=2, dt=1e-9, youngs=5e9, poisson=0.2,
+                               contact_damping=zeta, viscous_damping=visc)
+        crit = float(timestep.critical_timestep(state, prm, config))
+        nominal = float(timestep.nominal_critical_timestep(
+            state.particles, prm, config, coordination=6, overlap_ratio=ratio))
+        assert nominal == pytest.approx(crit, rel=1e-9)
+
+
+def test_check_timestep_without_contacts_uses_the_nominal_step():
+    """Before anything touches, the critical step is infinite; ``check_timestep``
+    then refuses a step above the nominal one, and accepts one below it."""
+    parts = jdem.make_particles(np.array([[0.0, 0.0], [1.0, 0.0]]), [0.01, 0.01], density=RHO)
+    state, config = jdem.make_state(parts)
+    prm = _contact_params(1e-9)
+    nominal = float(timestep.nominal_critical_timestep(state.particles, prm, config))
+    assert np.isfinite(nominal)
+    timestep.check_timestep(state, prm._replace(dt=jnp.asarray(0.9 * nominal)), config)
+    with pytest.raises(jdem.InputError, match="params.dt"):
+        timestep.check_timestep(state, prm._replace(dt=jnp.asarray(1.1 * nominal)), config)
+
+
+@pytest.mark.parametrize("uniform", [False, True])
+def test_scale_density_makes_the_target_step_stable_with_its_margin(uniform):
+    """000 §3.3.2: after scaling, the critical step of every disc that needed more
+    mass is exactly target / safety (the bound goes as sqrt(m)), for translation
+    and rotation alike; the weight keeps the true mass.  Unequal discs of a
+    lattice whose rotation limits are tighter than their translation ones for
+    some discs and looser for others."""
+    state, config = _hex_lattice(0.01, 0.004)
+    p = state.particles
+    rng = np.random.default_rng(3)
+    spread = jnp.asarray(rng.uniform(0.3, 3.0, p.mass.shape))
+    state = state._replace(particles=p._replace(inertia=p.inertia * spread))
+    prm = jdem.make_params(dim=2, dt=1e-9, youngs=5e9, poisson=0.2)
+    crit = float(timestep.critical_timestep(state, prm, config))
+    target, safety = 3 * crit, 0.8
+    scaled = timestep.scale_density(state, prm, config, target, safety=safety, uniform=uniform)
+    after = float(timestep.critical_timestep(scaled, prm, config))
+    assert after == pytest.approx(target / safety, rel=1e-9)
+    ratio = np.asarray(scaled.particles.mass / state.particles.mass)
+    np.testing.assert_allclose(np.asarray(scaled.particles.inertia / state.particles.inertia),
+                               ratio, rtol=1e-12)
+    assert np.all(ratio >= 1)
+    if uniform:
+        np.testing.assert_allclose(ratio, ratio[0], rtol=1e-12)
+    np.testing.assert_array_equal(np.asarray(scaled.particles.gravity_mass),
+                                  np.asarray(state.particles.gravity_mass))
