@@ -419,25 +419,28 @@ def test_bond_bound_counts_every_spring_and_dashpot(radius):
     dashpot at arm L / 2.  Radius 0.3 m makes L = 0.6 m, where L^2 and 1 / L^2
     differ."""
     pos = np.array([[0.0, 0.0], [2 * radius, 0.0]])
-    for fixed_vel, fixed_rot in ((np.array([[True] * 2, [False] * 2]), np.ones(2, bool)),
-                                 (np.ones((2, 2), bool), np.array([True, False]))):
+    # free: the bond's first particle or its second (each end's sums count)
+    for free, spins in ((0, False), (1, False), (0, True), (1, True)):
+        held = np.arange(2) != free
+        fixed_vel = np.ones((2, 2), bool) if spins else np.repeat(held[:, None], 2, axis=1)
+        fixed_rot = held if spins else np.ones(2, bool)
         parts = jdem.make_particles(pos, [radius] * 2, density=RHO, fixed_vel=fixed_vel,
                                     fixed_rot=fixed_rot)
         state, config = jdem.make_state(parts, bonds=create_bonds(parts, 2, gap_tolerance=1e-9))
         g = bond_geometry(state.bonds, state.particles, _params(2, 1e-6), 2)
         kn, ks, L = float(g.kn[0]), float(g.ks[0]), float(g.length[0])
         assert L == pytest.approx(2 * radius, rel=1e-12)
-        m, inertia = float(parts.mass[1]), float(parts.inertia[1])
+        m, inertia = float(parts.mass[free]), float(parts.inertia[free])
         zeta, visc = 0.3, 20.0
         cn, cs = (2 * zeta * np.sqrt(0.5 * m * k) for k in (kn, ks))
         crit = float(timestep.critical_timestep(
             state, _params(2, 1e-9, bond_damping=zeta, viscous_damping=visc), config))
-        if fixed_rot[1]:
+        if not spins:
             expect = _damped_limit(2 * (kn + ks) / m, 2 * (cn + cs) / m + visc)
         else:
             k_rot = ks * L ** 2 / 4 + kn * float(g.I[0]) / float(g.area[0])
             expect = _damped_limit(2 * k_rot / inertia, 2 * cs * L ** 2 / 4 / inertia + visc)
-        assert crit == pytest.approx(expect, rel=1e-12)
+        assert crit == pytest.approx(expect, rel=1e-12), (free, spins)
 
 
 def _hex_lattice(radius, overlap_ratio, rows=5, cols=5):

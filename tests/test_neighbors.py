@@ -120,3 +120,49 @@ def test_a_bonded_assembly_gets_room_for_twice_its_pairs_not_a_dense_packing():
     assert _pairs(bonded) == _brute_pairs(pos, np.full(len(pos), 1e-3), 2e-4) - set(
         zip(np.asarray(bonds.i)[np.asarray(bonds.valid)].tolist(),
             np.asarray(bonds.j)[np.asarray(bonds.valid)].tolist()))
+
+
+def test_a_pair_is_not_taken_for_bonded_by_the_next_particles_bond():
+    """Bonds (0, 1) and (1, 2) of a triangle of touching discs: the pair (0, 2) is
+    not bonded (particle 0's run of bonds ends before the bond (1, 2), whose
+    partner is also 2) and must be listed; (0, 1) and (1, 2) must not."""
+    pos = np.array([[0.0, 0.0], [0.0019, 0.0], [0.00095, 0.0019 * np.sqrt(3) / 2]])
+    p = jdem.make_particles(pos, np.full(3, 1e-3))
+    state, cfg = jdem.make_state(p, skin=2e-4)
+    assert _pairs(state.contacts) == {(0, 1), (0, 2), (1, 2)}
+    bonds = jdem.empty_bonds(2, 2)._replace(i=jnp.array([0, 1], jnp.int32),
+                                           j=jnp.array([1, 2], jnp.int32),
+                                           valid=jnp.array([True, True]))
+    assert _pairs(neighbors.build(state.contacts, p, cfg, bonds)) == {(0, 2)}
+
+
+def test_pairs_are_sorted_also_when_one_int32_key_would_overflow():
+    """``_sort_pairs`` packs (major, minor) into one int32 key only while
+    (major_max + 1) n_minor < 2^31; at 2^15 + 1 majors of 2^16 minors it must
+    sort on two keys, and the order is the lexicographic one either way."""
+    rng = np.random.default_rng(0)
+    for major_max, n_minor in ((2**15 - 1, 2**16), (2**15, 2**16), (70_000, 70_000)):
+        major = rng.integers(0, major_max + 1, 500).astype(np.int32)
+        major[:3] = major_max
+        minor = rng.integers(0, n_minor, 500).astype(np.int32)
+        a, b = neighbors._sort_pairs(jnp.asarray(major), jnp.asarray(minor), major_max, n_minor)
+        order = np.lexsort((minor, major))
+        np.testing.assert_array_equal(np.asarray(a), major[order])
+        np.testing.assert_array_equal(np.asarray(b), minor[order])
+
+
+def test_a_list_of_no_rows_carries_no_history_and_room_has_a_floor():
+    """A rebuild from a list of capacity 0 gives zero tangential history of the
+    list's width; ``room_for`` gives slack x the pairs plus 16 rows, rounded up
+    to 64 (jdem.state.ROW_ALIGN), so
+    a list never starts with no room."""
+    p = jdem.make_particles(np.array([[0.0, 0.0], [0.0019, 0.0]]), np.full(2, 1e-3))
+    empty = neighbors.empty(p, 0)
+    out = neighbors.carry_history(empty, jnp.zeros(4, jnp.int32), jnp.ones(4, jnp.int32),
+                                  jnp.ones(4, bool), 2)
+    assert out.shape == (4, 2)
+    np.testing.assert_array_equal(np.asarray(out), 0.0)
+    for need in (0, 1, 100, 1001):
+        rows = neighbors.room_for(need)
+        assert rows >= 1.25 * need + 16
+        assert rows < 1.25 * need + 16 + 1 + 64          # aligned to 64 rows
