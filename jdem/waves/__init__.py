@@ -69,6 +69,7 @@ from jdem.waves.bar import (  # noqa: F401
     bar_model,
     bar_pair,
     cut_packing,
+    motion_direction,
     peak,
     reflection,
     reflection_against_reference,
@@ -77,6 +78,7 @@ from jdem.waves.bar import (  # noqa: F401
 )
 from jdem.waves.calibration import (  # noqa: F401
     Calibration,
+    arriving_peak,
     bar_energy,
     calibrate_gradient,
     calibrate_ratio,

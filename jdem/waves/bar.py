@@ -171,15 +171,25 @@ def bar_model(particles, bonds, *, length, height, c_p=1000.0, density=2500.0, a
 
 
 
-def with_betas(model: BarModel, *, beta_left=None, beta_right=None) -> Conditions:
-    """The model's conditions with new calibration factors (beta_2P = beta_2S)."""
+def with_betas(model: BarModel, *, beta_left=None, beta_right=None, wave="both") -> Conditions:
+    """The model's conditions with new calibration factors of 001 eq 4: beta_2P
+    (``wave="P"``), beta_2S (``"S"``) or both set to the value (``"both"``); the
+    other factor keeps its value."""
+    if wave not in ("both",) + POLARISATIONS:
+        raise InputError(f"wave must be 'both', 'P' or 'S', got {wave!r}")
     left, right = model.conditions.boundaries
-    f = lambda v: jnp.asarray(v, left.beta_p.dtype)
+    f = lambda v: jnp.asarray(v, left.beta_p.dtype)   # noqa: E731
+    names = {"both": ("beta_p", "beta_s"), "P": ("beta_p",), "S": ("beta_s",)}[wave]
     if beta_left is not None:
-        left = left._replace(beta_p=f(beta_left), beta_s=f(beta_left))
+        left = left._replace(**{k: f(beta_left) for k in names})
     if beta_right is not None:
-        right = right._replace(beta_p=f(beta_right), beta_s=f(beta_right))
+        right = right._replace(**{k: f(beta_right) for k in names})
     return model.conditions._replace(boundaries=(left, right))
+
+
+def motion_direction(model: BarModel) -> np.ndarray:
+    """Unit vector (2,) of the discs' motion in the bar: x for P, y for S."""
+    return np.eye(2)[_motion(model.polarisation)]
 
 
 
@@ -347,6 +357,9 @@ def reflection_against_reference(truncated: dict, reference: dict, *, monitor=2,
         raise InputError(f"t_max = {t_max!r} leaves no record")
     inc = float(np.max(vb[win])) if incident is None else float(
         require_positive("incident", incident))
+    if not inc > 0:
+        raise InputError(f"the reference never moves along component {component} at monitor "
+                         f"{monitor} (peak {inc!r} m/s): for an S bar pass component=1")
     k = int(np.argmax(np.where(win, np.abs(diff), -np.inf)))
     ref = float(np.abs(diff[k]))
     return dict(incident=inc, reflected=ref, ratio=ref / inc, time=float(ta[k]), difference=diff)
