@@ -126,11 +126,11 @@ def test_random_reference_shares_the_packing(random_pair, random_reference):
 
 
 @pytest.mark.xfail(strict=True, reason=(
-    "too coarse for 2 %: with radii 4-6 m the cut face has 5 discs, and measured against the "
-    "extended reference even the best beta of a scan (0.8) reflects 3.7 % at P3; the ratio "
-    "iteration lands at 0.70 (7.9 %), against the arriving peak at 0.82 (2.05 %, slow test "
-    "below).  The check is met at radii 1-1.5 m, 20 face discs: "
-    "test_random_packing_fine_reflected_amplitude_after_calibration (slow), 1.24 %"))
+    "not met at radii 4-6 m (5 discs across the cut face): the ratio iteration lands at beta "
+    "0.70 and reflects 7.9 % at P3, measured against the extended reference, while the best "
+    "beta of a scan (0.85) reflects 1.93 % and the iteration against the arriving peak (0.82, "
+    "slow test below) 2.05 %.  The check is met at radii 1-1.5 m, 22 face discs: "
+    "test_random_packing_fine_reflected_amplitude_after_calibration (slow), 1.63 %"))
 def test_random_packing_reflected_amplitude_after_calibration(random_pair, random_reference):
     trunc = random_pair.truncated
     h = waves.run_bar(trunc, waves.with_betas(trunc, beta_right=_calibrated_beta(trunc)))
@@ -145,9 +145,10 @@ def test_random_packing_fine_reflected_amplitude_after_calibration():
     14,600 in the 1800 m reference; about 5 minutes, hence ``slow``).  The ratio
     iteration converges (|M_out / M_in - 1| < 0.001 within 15 runs) and then the
     reflected amplitude at P3, measured against the extended reference, is below
-    2 %.  Measured: beta 0.891 in 7 runs, 1.24 %.  With radii 4-6 m (the
-    default-suite bar above) the best beta of a scan still reflects 3.7 %; with
-    2-3 m, 1.9 %: the residual is the raggedness of a face of 5-10 discs."""
+    2 %.  Measured (2026-12-05): beta 0.810 in 8 runs, 1.63 %.  On the coarser
+    bars the iteration lands below the best beta of a scan (4-6 m: 0.70, 7.9 %
+    against 0.85, 1.9 %; 2-3 m: 0.71, 11.3 % against 0.9, 1.2 %;
+    experiments/results/pwave_resolution)."""
     pair = _random_bar_pair(1.0, 1.5)
     trunc = pair.truncated
     cal = waves.calibrate_ratio(trunc, beta0=1.0)
