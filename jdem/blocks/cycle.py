@@ -36,7 +36,7 @@ import numpy as np
 
 from jdem import damping, neighbors
 from jdem.blocks import detect, joint
-from jdem.blocks.geometry import Blocks, world_vertices
+from jdem.blocks.geometry import Blocks, signed_area, world_vertices
 from jdem.kinematics import cross_r_f, cross_w_r, segment_add
 from jdem.simulate import SimulationDiverged
 from jdem.state import Config, Contacts
@@ -352,9 +352,8 @@ def recommended_timestep(blocks: Blocks, params: BlockParams, safety=0.5) -> flo
         inradius = []
         for verts, ok in zip(w, vv):
             v = verts[ok]
-            edge = np.roll(v, -1, axis=0) - v
-            area = 0.5 * abs(np.sum(v[:, 0] * edge[:, 1] - v[:, 1] * edge[:, 0]))
-            inradius.append(2.0 * area / np.sum(np.linalg.norm(edge, axis=1)))
+            perimeter = np.sum(np.linalg.norm(np.roll(v, -1, axis=0) - v, axis=1))
+            inradius.append(2.0 * abs(signed_area(v)) / perimeter)
         if r >= 0.5 * min(inradius):
             raise InputError(f"block parameter corner_radius = {r!r} m does not fit the "
                              f"smallest block (half its inradius 2 A / P is "
@@ -377,7 +376,8 @@ def rollout(state: BlockState, params: BlockParams, config: Config, n_records: i
     observe = observe or default_observe
 
     def chunk(s, _):
-        s = jax.lax.fori_loop(0, record_every, lambda _, x: step(x, params, config, sharp_corners), s)
+        s = jax.lax.fori_loop(0, record_every,
+                              lambda _, x: step(x, params, config, sharp_corners), s)
         return s, observe(s, params)
 
     return jax.lax.scan(jax.checkpoint(chunk), state, None, length=n_records)

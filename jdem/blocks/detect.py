@@ -151,8 +151,8 @@ def pair_geometry_one(verts_i, valid_i, verts_j, valid_j, scale, corner_radius=0
     touch as before (over the straight part of the face) while a corner meets a
     face with its arc (eq 3-35); where the clipped contact of the cores is empty
     (two corners meeting, 000 fig 3-11), the contact is one point on the line
-    joining the two nearest arc centres, with the gap |C1 C2| - 2 R (eq 3-34).  Returns the fields of :class:`PairGeometry`
-    for one pair.
+    joining the two nearest arc centres, with the gap |C1 C2| - 2 R (eq 3-34).
+    Returns the fields of :class:`PairGeometry` for one pair.
     """
     if isinstance(corner_radius, (int, float)) and corner_radius == 0.0:
         return _clipped_contact(verts_i, valid_i, verts_j, valid_j, scale)[:5]
