@@ -4,12 +4,17 @@
     python experiments/blocks_benchmark.py                  # ~1,000 and ~4,000 blocks
     python experiments/blocks_benchmark.py --sizes 1000 --x64
     python experiments/blocks_benchmark.py --quick          # ~250 blocks, short chunks
+    python experiments/blocks_benchmark.py --corner-radius 0.001 --yielding
 
 The work: a W x H region (aspect 2) cut by two joint sets (dip 30 degrees and
 100 degrees, spacings chosen for the requested number of blocks) into convex
 blocks resting on a fixed floor between fixed walls, under gravity, joint
 friction 30 degrees, contact dashpots 0.2 of critical, local damping 0.7: a
-jointed rock mass settling, the block method's typical quasi-static run.  The
+jointed rock mass settling, the block method's typical quasi-static run.
+``--corner-radius`` rounds the corners (000 eq 3-34, 3-35), ``--yielding``
+makes the joints continuously yielding (phi_0 = 40 degrees, R = 1 mm); the
+loop takes the static paths ``jdem.blocks.run`` takes for these parameters
+(``sharp_corners``, ``coulomb_only``).  The
 first chunk is run and discarded (compilation and the first contacts); then
 ``--chunks`` chunks of ``--chunk-steps`` steps of ``jdem.blocks.rollout`` are
 timed with ``block_until_ready``; the median chunk gives the rate.  Then one
@@ -36,6 +41,8 @@ def main(argv=None):
     ap.add_argument("--sizes", type=int, nargs="+", default=None, help="approximate block counts")
     ap.add_argument("--x64", action="store_true", help="float64 (default float32)")
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--corner-radius", type=float, default=0.0, help="[m]")
+    ap.add_argument("--yielding", action="store_true", help="continuously yielding joints")
     ap.add_argument("--chunk-steps", type=int, default=None)
     ap.add_argument("--chunks", type=int, default=None)
     ap.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "blocks"))
@@ -64,16 +71,19 @@ def main(argv=None):
         blocks = bk.make_blocks(frame + polys, 2600.0, fixed=[0, 1, 2], dtype=dtype)
         state, config = bk.make_state(blocks)
         p = bk.make_params(kn=2e9, friction=np.tan(np.deg2rad(30.0)), contact_damping=0.2,
-                           local_damping=0.7, dtype=dtype)
+                           local_damping=0.7, corner_radius=args.corner_radius,
+                           cy_friction0=np.tan(np.deg2rad(40.0)) if args.yielding else 0.0,
+                           cy_roughness=1e-3, dtype=dtype)
         p = p._replace(dt=jnp.asarray(bk.recommended_timestep(blocks, p), dtype))
+        paths = dict(sharp_corners=args.corner_radius == 0, coulomb_only=not args.yielding)
         t0 = time.perf_counter()
-        state, _ = bk.rollout(state, p, config, 1, chunk)
+        state, _ = bk.rollout(state, p, config, 1, chunk, **paths)
         jax.block_until_ready(state)
         first = time.perf_counter() - t0
         times = []
         for _ in range(n_chunks):
             t0 = time.perf_counter()
-            state, _ = bk.rollout(state, p, config, 1, chunk)
+            state, _ = bk.rollout(state, p, config, 1, chunk, **paths)
             jax.block_until_ready(state)
             times.append(time.perf_counter() - t0)
         med = float(np.median(times))
@@ -88,11 +98,15 @@ def main(argv=None):
                 ts.append(time.perf_counter() - t1)
             return float(min(ts))
 
-        geometry = jax.jit(lambda s: detect.pair_geometry(s.blocks, s.contacts.i, s.contacts.j))
-        forces = jax.jit(lambda s, q: cycle.contact_forces(s, q)[1])
-        one = jax.jit(lambda s, q: cycle.step(s, q, config))
+        radius = 0.0 if paths["sharp_corners"] else p.corner_radius
+        geometry = jax.jit(lambda s: detect.pair_geometry(s.blocks, s.contacts.i, s.contacts.j,
+                                                          radius))
+        forces = jax.jit(lambda s, q: cycle.contact_forces(s, q, **paths)[1])
+        one = jax.jit(lambda s, q: cycle.step(s, q, config, **paths))
         row = dict(blocks=n_blocks, pairs=int(state.contacts.i.shape[0]),
                    listed=int(jnp.sum(state.contacts.valid)), dtype=str(np.dtype(dtype)),
+                   corner_radius=args.corner_radius,
+                   joint="yielding" if args.yielding else "Coulomb",
                    first_chunk_s=first, chunk_steps=chunk, median_chunk_s=med,
                    steps_per_s=chunk / med, block_steps_per_s=n_blocks * chunk / med,
                    geometry_us=1e6 * best_of(geometry, state),
@@ -108,13 +122,17 @@ def main(argv=None):
                 devices=[str(d) for d in jax.devices()], jax=jax.__version__,
                 command=" ".join(["python", "experiments/blocks_benchmark.py"] +
                                  list(argv if argv is not None else sys.argv[1:])))
-    stem = "blocks_benchmark_x64" if args.x64 else "blocks_benchmark"
+    stem = "blocks_benchmark" + ("_x64" if args.x64 else "") + \
+        (f"_r{args.corner_radius:g}" if args.corner_radius else "") + \
+        ("_yielding" if args.yielding else "")
     (out / f"{stem}.json").write_text(json.dumps(dict(meta=meta, rows=rows), indent=1))
     lines = [f"# Block method throughput ({meta['date']})", "",
              f"`{meta['command']}` on {meta['machine']}, jax {meta['jax']}, {meta['devices']}.",
-             "", "| blocks | dtype | listed pairs | steps/s | block-steps/s | geometry [us] | "
-             "contact forces [us] | step [us] |", "|---|---|---|---|---|---|---|---|"]
-    lines += [f"| {r['blocks']} | {r['dtype']} | {r['listed']} | {r['steps_per_s']:.0f} | "
+             "", "| blocks | dtype | corner radius [m] | joint | listed pairs | steps/s | "
+             "block-steps/s | geometry [us] | contact forces [us] | step [us] |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['blocks']} | {r['dtype']} | {r['corner_radius']:g} | {r['joint']} | "
+              f"{r['listed']} | {r['steps_per_s']:.0f} | "
               f"{r['block_steps_per_s']:.3g} | {r['geometry_us']:.0f} | "
               f"{r['contact_forces_us']:.0f} | {r['step_us']:.0f} |" for r in rows]
     (out / f"{stem}.md").write_text("\n".join(lines) + "\n")

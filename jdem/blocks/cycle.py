@@ -7,9 +7,10 @@ One step:
 1. refresh the pair list if some centroid moved half the skin (:mod:`jdem.blocks.detect`);
 2. contact geometry of every listed pair, relative velocity at each contact
    point (000 eq 2-9, 2-10), the joint law (:func:`jdem.blocks.joint.coulomb_point`,
-   000 eq 2-11) plus contact dashpots (000 eq 2-12 in rate form: a fraction
-   ``contact_damping`` of the critical c = 2 sqrt(m* k), the shear one off while
-   the point slips, as the book says), forces and moments summed on the blocks
+   000 eq 2-11, or the continuously yielding joint where the joint has one,
+   :func:`jdem.blocks.joint.yielding_point`) plus contact dashpots (000 eq 2-12
+   in rate form: a fraction ``contact_damping`` of the critical c = 2 sqrt(m* k),
+   the shear one off while the point slips, as the book says), forces and moments summed on the blocks
    (000 eq 2-13, 2-14) with gravity and applied loads;
 3. damping of the unbalanced force and moment (000 §3.2, the particles' laws of
    :mod:`jdem.damping`);
@@ -20,9 +21,17 @@ One step:
 Same discipline as the particles: ``BlockState`` evolves, ``BlockParams`` are
 the traced floats (differentiable: stiffnesses, friction, strengths, damping),
 ``jdem.state.Config`` is static (the search grid).  Per listed pair the list
-keeps four history numbers in ``contacts.shear`` (C, 4): the shear forces of
-its two contact points [N] and whether each is intact (1.0 / 0.0); they carry
-over rebuilds with the pair, like the disc contacts' shear springs.
+keeps its history in ``contacts.shear`` (C, 12), six numbers for each of its two
+contact points, in columns [2 k, 2 k + 1] for quantity k:
+
+0. the shear force [N];
+1. whether the point is intact (1.0 / 0.0);
+2. to 5. the continuously yielding joint's plastic shear displacement u_p [m],
+   stress ratio at the last reversal, sign of the last shear increment, and
+   accumulated dilation [m] (:func:`jdem.blocks.joint.yielding_point`; zero
+   for the other joints).
+
+They carry over rebuilds with the pair, like the disc contacts' shear springs.
 """
 from __future__ import annotations
 
@@ -43,7 +52,7 @@ from jdem.state import Config, Contacts
 from jdem.timestep import damped_limit
 from jdem.validate import InputError
 
-HISTORY = 2 * detect.POINTS_PER_PAIR     # shear force and intact flag per point
+HISTORY = 6 * detect.POINTS_PER_PAIR     # six numbers per point (module docstring)
 
 
 class BlockParams(NamedTuple):
@@ -72,6 +81,13 @@ class BlockParams(NamedTuple):
                      friction angle of a point is atan(friction) + JRC log10(JCS /
                      sigma_n), sigma_n its normal force over its share of the
                      contact length (half the clipped face, unit thickness)
+    cy_friction0     (M, M) tan(phi_0) of a continuously yielding joint (000 §3.4.1
+                     item 5): where > 0 the joint follows
+                     :func:`jdem.blocks.joint.yielding_point`, its friction angle
+                     falling from phi_0 to atan(friction) with the plastic slip;
+                     no cohesion, tension or ``jrc`` there
+    cy_roughness     (M, M) its roughness R [m]: the plastic slip over which the
+                     friction angle falls (half-way at u_p = R / (phi_0 - phi))
     corner_radius    radius of the arcs that round every block corner [m] (000 eq
                      3-34, 3-35, fig 3-12; :func:`jdem.blocks.detect.pair_geometry`);
                      0: sharp corners
@@ -91,6 +107,8 @@ class BlockParams(NamedTuple):
     jcs: jnp.ndarray
     kn_face: jnp.ndarray
     ks_face: jnp.ndarray
+    cy_friction0: jnp.ndarray
+    cy_roughness: jnp.ndarray
     corner_radius: jnp.ndarray
     contact_damping: jnp.ndarray
     local_damping: jnp.ndarray
@@ -98,17 +116,20 @@ class BlockParams(NamedTuple):
     gravity: jnp.ndarray
 
 
-JOINT_TABLE = ("kn", "ks", "friction", "cohesion", "tension", "jrc", "jcs", "kn_face", "ks_face")
+JOINT_TABLE = ("kn", "ks", "friction", "cohesion", "tension", "jrc", "jcs", "kn_face", "ks_face",
+               "cy_friction0", "cy_roughness")
 
 
 def make_params(*, kn, ks=None, friction=0.5, cohesion=0.0, tension=0.0, jrc=0.0, jcs=1e8,
-                kn_face=0.0, ks_face=None, corner_radius=0.0, contact_damping=0.0,
+                kn_face=0.0, ks_face=None, cy_friction0=0.0, cy_roughness=0.0,
+                corner_radius=0.0, contact_damping=0.0,
                 local_damping=0.0, viscous_damping=0.0, gravity=(0.0, -9.81), dt=None,
                 dtype=None) -> BlockParams:
     """Block parameters with checks.
 
     The joint properties (``kn``, ``ks``, ``friction``, ``cohesion``,
-    ``tension``, ``jrc``, ``jcs``, ``kn_face``, ``ks_face``) are numbers (one
+    ``tension``, ``jrc``, ``jcs``, ``kn_face``, ``ks_face``, ``cy_friction0``,
+    ``cy_roughness``) are numbers (one
     kind of joint) or symmetric (M, M) tables over the block materials
     (:class:`BlockParams`).  ``ks`` defaults to kn / (2 (1 + 0.25)) (000 eq 3-33
     with nu = 0.25), ``ks_face`` likewise to kn_face / 2.5; ``dt`` to NaN (set
@@ -117,7 +138,8 @@ def make_params(*, kn, ks=None, friction=0.5, cohesion=0.0, tension=0.0, jrc=0.0
     ks = np.asarray(kn, dtype=np.float64) / 2.5 if ks is None else ks
     ks_face = np.asarray(kn_face, dtype=np.float64) / 2.5 if ks_face is None else ks_face
     table = dict(kn=kn, ks=ks, friction=friction, cohesion=cohesion, tension=tension, jrc=jrc,
-                 jcs=jcs, kn_face=kn_face, ks_face=ks_face)
+                 jcs=jcs, kn_face=kn_face, ks_face=ks_face, cy_friction0=cy_friction0,
+                 cy_roughness=cy_roughness)
     arrays = {k: np.asarray(v, dtype=np.float64) for k, v in table.items()}
     # the table size comes from kn if it is a table, else from the first table given
     m = next((a.shape[0] for a in arrays.values() if a.ndim == 2), 1)
@@ -136,6 +158,16 @@ def make_params(*, kn, ks=None, friction=0.5, cohesion=0.0, tension=0.0, jrc=0.0
         raise InputError(f"block parameter jcs must be > 0, got {arrays['jcs'].tolist()}")
     if np.any(arrays["kn"] <= 0):
         raise InputError(f"block parameter kn must be > 0, got {arrays['kn'].tolist()}")
+    yielding = arrays["cy_friction0"] > 0
+    if np.any(yielding & (arrays["cy_friction0"] <= arrays["friction"])):
+        raise InputError(f"block parameter cy_friction0 = {arrays['cy_friction0'].tolist()} "
+                         f"must exceed friction = {arrays['friction'].tolist()} where it is > 0 "
+                         f"(the initial friction angle of a continuously yielding joint)")
+    for name in ("cohesion", "tension", "jrc"):
+        if np.any(yielding & (arrays[name] > 0)):
+            raise InputError(f"block parameter {name} = {arrays[name].tolist()} must be 0 where "
+                             f"the joint is continuously yielding (cy_friction0 > 0): that law "
+                             f"has no {name}")
     scalars = dict(corner_radius=corner_radius, contact_damping=contact_damping,
                    local_damping=local_damping, viscous_damping=viscous_damping)
     for name, v in scalars.items():
@@ -201,7 +233,8 @@ class ContactForces(NamedTuple):
     overlap: jnp.ndarray
 
 
-def contact_forces(state: BlockState, params: BlockParams, *, sharp_corners=False):
+def contact_forces(state: BlockState, params: BlockParams, *, sharp_corners=False,
+                   coulomb_only=False):
     """Joint forces of the listed pairs and their sums on the blocks.
 
     Returns ``(contacts, force (B, 2) [N], moment (B,) [N m], ContactForces)``,
@@ -209,12 +242,21 @@ def contact_forces(state: BlockState, params: BlockParams, *, sharp_corners=Fals
     ``sharp_corners=True`` (static) skips the rounding of the corners, which then
     must be 0 (:func:`run` sets it after checking: the rounding path costs ~15 %
     of a step even at radius 0, which a traced radius cannot skip).
+    ``coulomb_only=True`` (static) likewise skips the continuously yielding law,
+    which then must be unused (``cy_friction0`` all 0; :func:`run` checks).
     """
     b, c = state.blocks, state.contacts
     g = detect.pair_geometry(b, c.i, c.j, 0.0 if sharp_corners else params.corner_radius)
-    shear_old = c.shear[:, :2]
-    intact_old = c.shear[:, 2:] > 0.5
-    active = c.valid[:, None] & g.exists & ((g.separation < 0) | intact_old)
+    shear_old = c.shear[:, 0:2]
+    intact_old = c.shear[:, 2:4] > 0.5
+    plastic_old, ratio_old, sign_old, dilation_old = (c.shear[:, k:k + 2] for k in (4, 6, 8, 10))
+    ma, mb = b.material[c.i], b.material[c.j]
+    kn, ks, mu, coh, ten, jrc, jcs, kn_face, ks_face, mu0, rough_r = (
+        getattr(params, name)[ma, mb][:, None] for name in JOINT_TABLE)
+    # a continuously yielding point touches while its overlap plus its dilation
+    # is positive: the dilation has pushed the faces apart by that much
+    dilation_old = jnp.where(mu0 > 0, dilation_old, 0.0)
+    active = c.valid[:, None] & g.exists & ((g.separation < dilation_old) | intact_old)
     n = g.normal[:, None, :]                               # (C, 1, 2)
     t = jnp.stack([-n[..., 1], n[..., 0]], axis=-1)
     ri = g.point - b.pos[c.i][:, None, :]
@@ -225,9 +267,6 @@ def contact_forces(state: BlockState, params: BlockParams, *, sharp_corners=Fals
     vn = jnp.sum(v_rel * n, axis=-1)                       # 000 eq 2-10
     vt = jnp.sum(v_rel * t, axis=-1)
     overlap = -g.separation
-    ma, mb = b.material[c.i], b.material[c.j]
-    kn, ks, mu, coh, ten, jrc, jcs, kn_face, ks_face = (getattr(params, name)[ma, mb][:, None]
-                                                        for name in JOINT_TABLE)
     # an edge–edge contact (both ends of the clipped edge touching) on a joint with
     # a face stiffness: each point carries half the contact length (000 fig 3-13,
     # eq 3-36, 3-37), so a sliver of an edge (e.g. two corners that meet) carries
@@ -242,8 +281,26 @@ def contact_forces(state: BlockState, params: BlockParams, *, sharp_corners=Fals
     sigma_n = jnp.maximum(kn * overlap, 0.0) / share
     rough = joint.barton_friction(sigma_n, jnp.arctan(mu), jrc, jcs)
     mu = jnp.where(jrc > 0, rough, mu)
+    d_shear = vt * params.dt
     fn, fs, intact, sliding = joint.coulomb_point(
-        overlap, vt * params.dt, shear_old, intact_old & active, kn, ks, mu, coh, ten)
+        overlap, d_shear, shear_old, intact_old & active, kn, ks, mu, coh, ten)
+    plastic, ratio, sign, dilation = plastic_old, ratio_old, sign_old, dilation_old
+    if not coulomb_only:
+        # the continuously yielding joint: the dilation adds to the overlap
+        # (000 §3.4.1 item 5, sigma_n += k_n |du_s| tan i); a point out of touch
+        # forgets its dilation, as it forgets its shear force
+        yielding = (mu0 > 0) & active
+        fn_cy = kn * jnp.maximum(overlap + dilation_old, 0.0)
+        fs_cy, plastic_cy, ratio_cy, sign_cy, d_dil, slip_cy = joint.yielding_point(
+            fn_cy, d_shear, shear_old, plastic_old, ratio_old, sign_old, ks, mu, mu0, rough_r)
+        fn = jnp.where(yielding, fn_cy, fn)
+        fs = jnp.where(yielding, fs_cy, fs)
+        intact = intact & ~yielding
+        sliding = jnp.where(yielding, slip_cy, sliding)
+        plastic = jnp.where(yielding, plastic_cy, plastic_old)
+        ratio = jnp.where(yielding, ratio_cy, ratio_old)
+        sign = jnp.where(yielding, sign_cy, sign_old)
+        dilation = jnp.where(yielding, dilation_old + d_dil, 0.0)
     # dashpots (000 eq 2-12 as a fraction of critical); reduced mass, a fixed
     # block counting as infinitely heavy
     mi = jnp.where(b.fixed[c.i], jnp.inf, b.mass[c.i])
@@ -264,7 +321,8 @@ def contact_forces(state: BlockState, params: BlockParams, *, sharp_corners=Fals
     force = segment_add(pair_force, c.j, nb) - segment_add(pair_force, c.i, nb)
     moment = segment_add(jnp.sum(cross_r_f(rj, force_j), axis=1), c.j, nb) - \
         segment_add(jnp.sum(cross_r_f(ri, force_j), axis=1), c.i, nb)
-    history = jnp.concatenate([fs, intact.astype(fs.dtype)], axis=1)
+    history = jnp.concatenate([fs, intact.astype(fs.dtype), plastic, ratio, sign, dilation],
+                              axis=1)
     contacts = c._replace(shear=jnp.where(c.valid[:, None], history, 0.0))
     info = ContactForces(normal=g.normal, point=g.point, fn=fn_total, fs=fs_total,
                          active=active, sliding=sliding & active, intact=intact,
@@ -272,14 +330,15 @@ def contact_forces(state: BlockState, params: BlockParams, *, sharp_corners=Fals
     return contacts, force, moment, info
 
 
-def step(state: BlockState, params: BlockParams, config: Config, sharp_corners=False
-         ) -> BlockState:
-    """One step of the cycle (module docstring); ``sharp_corners`` as in
-    :func:`contact_forces`."""
+def step(state: BlockState, params: BlockParams, config: Config, sharp_corners=False,
+         coulomb_only=False) -> BlockState:
+    """One step of the cycle (module docstring); ``sharp_corners`` and
+    ``coulomb_only`` as in :func:`contact_forces`."""
     b = state.blocks
     contacts = neighbors.update(state.contacts, detect.bounding_circles(b), config)
     state = state._replace(contacts=contacts)
-    contacts, force, moment, _ = contact_forces(state, params, sharp_corners=sharp_corners)
+    contacts, force, moment, _ = contact_forces(state, params, sharp_corners=sharp_corners,
+                                                coulomb_only=coulomb_only)
     force = force + b.mass[:, None] * params.gravity + b.ext_force
     moment = moment + b.ext_torque
     force = damping.viscous_damping(force, b.vel, b.mass, params.viscous_damping)
@@ -309,7 +368,7 @@ def glue_joints(state: BlockState, params: BlockParams, config: Config,
     glued = c.valid[:, None] & g.exists & (g.separation <= tolerance)
     if where is not None:
         glued = glued & jnp.asarray(where(np.asarray(g.point), np.asarray(g.normal)))
-    hist = c.shear.at[:, 2:].set(glued.astype(c.shear.dtype))
+    hist = c.shear.at[:, 2:4].set(glued.astype(c.shear.dtype))
     return state._replace(contacts=c._replace(shear=hist))
 
 
@@ -362,22 +421,25 @@ def recommended_timestep(blocks: Blocks, params: BlockParams, safety=0.5) -> flo
 
 
 @functools.partial(jax.jit, static_argnames=("config", "n_records", "record_every", "observe",
-                                             "sharp_corners"))
+                                             "sharp_corners", "coulomb_only"))
 def rollout(state: BlockState, params: BlockParams, config: Config, n_records: int,
-            record_every: int, observe=None, sharp_corners=False):
+            record_every: int, observe=None, sharp_corners=False, coulomb_only=False):
     """``n_records`` x ``record_every`` steps as a pure function (jit, vmap, grad).
 
     observe        ``observe(state, params) -> dict`` recorded after each block of
                    steps (default: block positions, angles, velocities)
     sharp_corners  skip the corner rounding (:func:`contact_forces`); only when
                    ``params.corner_radius`` is 0 (:func:`run` checks and sets it)
+    coulomb_only   skip the continuously yielding law; only when
+                   ``params.cy_friction0`` is all 0 (:func:`run` checks and sets it)
     Returns ``(state, history)`` with each record stacked on a leading axis.
     """
     observe = observe or default_observe
 
     def chunk(s, _):
         s = jax.lax.fori_loop(0, record_every,
-                              lambda _, x: step(x, params, config, sharp_corners), s)
+                              lambda _, x: step(x, params, config, sharp_corners,
+                                                coulomb_only), s)
         return s, observe(s, params)
 
     return jax.lax.scan(jax.checkpoint(chunk), state, None, length=n_records)
@@ -414,6 +476,7 @@ def run(state: BlockState, params: BlockParams, config: Config, n_steps: int, *,
         raise InputError(f"params.dt = {dt!r} must be in (0, {crit:.4g}] s, the critical "
                          f"step of these blocks (recommended_timestep gives a safe one)")
     sharp = not bool(np.any(np.asarray(params.corner_radius) > 0))
+    coulomb_only = not bool(np.any(np.asarray(params.cy_friction0) > 0))
     n_records = -(-int(n_steps) // int(record_every))
     per_chunk = max(1, min(n_records, 50))
     records = []
@@ -426,7 +489,8 @@ def run(state: BlockState, params: BlockParams, config: Config, n_steps: int, *,
         done = 0
         while done < n_records:
             k = min(per_chunk, n_records - done)
-            new, hist = rollout(state, params, config, k, int(record_every), observe, sharp)
+            new, hist = rollout(state, params, config, k, int(record_every), observe, sharp,
+                                coulomb_only)
             if bool(neighbors.overflowed(new.contacts, config)):
                 contacts, config = neighbors.reallocate(
                     state.contacts, detect.bounding_circles(state.blocks), config)

@@ -21,6 +21,13 @@ and no tension (the "elastic-plastic no-tension" contact of 000 §3.4.1).  A
 slipping point's shear force sits on the limit with the sign of the trial
 force.
 
+The continuously yielding joint (000 §3.4.1 item 5, Hart–Cundall):
+:func:`yielding_point` lowers the shear stiffness as the shear force nears a
+strength whose friction angle falls with the plastic shear displacement
+(:func:`yielding_friction`), with dilation, peak and residual strength and
+hysteresis on reversal; the contact law uses it where the joint's
+``cy_friction0`` > 0.
+
 Barton's rough-joint friction (000 eq 3-43, with the log10 of the Barton–Choubey
 form): phi = phi_b + JRC log10(JCS / sigma_n); :func:`barton_friction`
 returns tan(phi) for a normal stress; the contact law uses it point by point
@@ -28,6 +35,7 @@ where the joint's ``jrc`` > 0 (:class:`jdem.blocks.cycle.BlockParams`).
 """
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 
@@ -66,3 +74,105 @@ def barton_friction(sigma_n, phi_basic, jrc, jcs, *, max_angle=jnp.deg2rad(70.0)
     s = jnp.maximum(sigma_n, 1e-12 * jcs)
     phi = phi_basic + jnp.deg2rad(jrc * jnp.log10(jcs / s))
     return jnp.tan(jnp.clip(phi, 0.0, max_angle))
+
+
+def yielding_friction(plastic, mu, mu_initial, roughness):
+    """tan(phi_e) of the continuously yielding joint (000 §3.4.1 item 5, Hart–Cundall):
+    phi_e = phi + R / (u_p + R / (phi_0 - phi)), falling from phi_0 at u_p = 0
+    towards phi as the plastic shear displacement u_p [m] grows.
+
+    The book writes pi/2 for phi_0: the strength at u_p = 0 is then infinite, the
+    stiffness factor F below is 1 and u_p never grows, so the joint stays elastic
+    for good.  Here phi_0 = atan(``mu_initial``) is a parameter (finite, so below
+    pi/2), as in the code the model comes from.  ``roughness`` R [m] = 0 gives
+    phi_e = phi (no decay).
+    """
+    phi, phi0 = jnp.arctan(mu), jnp.arctan(mu_initial)
+    gap = jnp.maximum(phi0 - phi, 0.0)
+    rough = roughness > 0
+    # phi + R / (u_p + R / gap) written as phi + gap R / (gap u_p + R): no 0 / 0 at R = 0
+    denom = jnp.where(rough, gap * plastic + roughness, 1.0)
+    phi_e = phi + jnp.where(rough, gap * roughness / denom, 0.0)
+    return jnp.tan(phi_e)
+
+
+def yielding_point(fn, d_shear, shear_old, plastic_old, ratio_old, sign_old, ks, mu,
+                   mu_initial, roughness):
+    """One step of the continuously yielding joint (000 §3.4.1 item 5) at a point.
+
+    The book's stresses become point forces (area 1): sigma_n = F_n and the shear
+    "stress" along the slip, s = -F_s (``F_s`` is the force on the far body,
+    opposing its displacement ``d_shear``, as in :func:`coulomb_point`).
+
+    fn          F_n [N] this step, compression positive (the dilation included)
+    d_shear     du_s [m] this step
+    shear_old   F_s [N] of the last step
+    plastic_old u_s^(p) [m], the accumulated plastic shear displacement
+    ratio_old   gamma, the stress ratio s / s_max at the last reversal (0 at start)
+    sign_old    sign of the last nonzero du_s (0 before the first)
+    ks          initial shear stiffness k_s^(0) [N/m];  mu = tan(phi);
+    mu_initial  tan(phi_0);  roughness R [m]  (:func:`yielding_friction`)
+
+    Per the book: s_max = sigma_n tan(phi_e) sign(du_s); on a reversal of du_s
+    gamma := s / s_max; F = (s_max - s) / (s_max (1 - gamma)) (at most 1);
+    s += F k_s du_s; u_p += |du_s| (1 - F); the dilation angle
+    i = max(0, atan(|s| / sigma_n) - phi) adds |du_s| tan(i) to the normal
+    displacement (the book's sigma_n += k_n |du_s| tan i).  |s| never exceeds
+    |s_max|.  No cohesion, no tension: a point without compression carries nothing.
+
+    Returns ``(F_s, plastic, ratio, sign, d_dilation, yielding)``, ``yielding``
+    where the point is at or past its strength (F <= 0).
+    """
+    step_sign = jnp.sign(d_shear)
+    sign = jnp.where(step_sign != 0, step_sign, sign_old)
+    loaded = fn > 0
+    s_old = -shear_old
+    s_max = jnp.maximum(fn, 0.0) * yielding_friction(plastic_old, mu, mu_initial, roughness)
+    s_max_signed = s_max * jnp.where(sign != 0, sign, 1.0)
+    safe = jnp.where(s_max > 0, s_max_signed, 1.0)
+    reversed_ = (sign_old != 0) & (sign != sign_old)
+    ratio = jnp.where(reversed_, s_old / safe, ratio_old)
+    ratio = jnp.minimum(ratio, 1.0 - 1e-6)
+    # F < 0 where the strength has fallen below the force (u_p grew, F_n fell):
+    # the force then comes down, and u_p grows by more than |du| (the book's
+    # max(0, 1 - F)); so du_p + ds / k_s = du holds in monotonic slip
+    factor = jnp.minimum((1.0 - s_old / safe) / (1.0 - ratio), 1.0)
+    trial = s_old + factor * ks * d_shear
+    s = jnp.clip(trial, -s_max, s_max)            # a guard for steps too coarse for F
+    over = jnp.abs(trial - s) / jnp.where(ks > 0, ks, 1.0)
+    plastic = plastic_old + jnp.abs(d_shear) * (1.0 - factor) + over
+    yielding = (factor <= 0.0) | (over > 0)
+    # safe denominators where unloaded: jnp.where would pass on a NaN gradient
+    dilation = jnp.maximum(0.0, jnp.arctan2(jnp.abs(s), jnp.where(loaded, fn, 1.0))
+                           - jnp.arctan(mu))
+    d_dilation = jnp.where(loaded, jnp.abs(d_shear) * jnp.tan(dilation), 0.0)
+    fs = jnp.where(loaded, -s, 0.0)
+    return (fs, jnp.where(loaded, plastic, plastic_old), jnp.where(loaded, ratio, ratio_old),
+            sign, d_dilation, yielding & loaded)
+
+
+def yielding_shear_path(u, fn, ks, mu, mu_initial, roughness, *, kn=0.0):
+    """A direct shear test of one continuously yielding point: the law driven along
+    the prescribed shear displacements ``u`` (N,) [m] (u[0] the start).
+
+    fn  the normal force [N] at the start; ``kn`` [N/m] > 0 adds kn times the
+        dilation to it (a box whose lid cannot rise: constant normal stiffness),
+        0 keeps it constant (constant normal stress, 000 fig 3-16 to 3-18)
+    Other arguments as :func:`yielding_point`.  Returns a dict of (N - 1,) arrays
+    after each increment: ``shear`` s = -F_s [N], ``plastic`` u_p [m], ``ratio``,
+    ``dilation`` [m], ``normal`` F_n [N] the increment used.
+    """
+    u = jnp.asarray(u)
+    zero = jnp.zeros((), u.dtype)
+
+    def one(carry, du):
+        fs, plastic, ratio, sign, dil = carry
+        f = fn + kn * dil
+        fs, plastic, ratio, sign, d_dil, _ = yielding_point(
+            f, du, fs, plastic, ratio, sign, ks, mu, mu_initial, roughness)
+        dil = dil + d_dil
+        return (fs, plastic, ratio, sign, dil), dict(shear=-fs, plastic=plastic, ratio=ratio,
+                                                     dilation=dil, normal=f)
+
+    _, out = jax.lax.scan(one, (zero,) * 5, jnp.diff(u))
+    return out
