@@ -4,7 +4,7 @@
     python experiments/blocks_benchmark.py                  # ~1,000 and ~4,000 blocks
     python experiments/blocks_benchmark.py --sizes 1000 --x64
     python experiments/blocks_benchmark.py --quick          # ~250 blocks, short chunks
-    python experiments/blocks_benchmark.py --corner-radius 0.001 --yielding
+    python experiments/blocks_benchmark.py --corner-radius 0.0002 --yielding  # R must fit the slivers
 
 The work: a W x H region (aspect 2) cut by two joint sets (dip 30 degrees and
 100 degrees, spacings chosen for the requested number of blocks) into convex
