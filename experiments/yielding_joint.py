@@ -37,6 +37,7 @@ import numpy as np  # noqa: E402
 import jdem.io  # noqa: E402
 from jdem import blocks as bk  # noqa: E402
 from jdem.blocks import joint  # noqa: E402
+from jdem.blocks.cycle import history_field  # noqa: E402
 
 SIGMA_N, KS = 1e6, 1e10                  # Pa (N on a unit area), Pa/m
 MU, MU0 = np.tan(np.deg2rad(30.0)), np.tan(np.deg2rad(45.0))
@@ -71,7 +72,8 @@ def shear_box(n_steps=6000, v=0.5, overlap=1e-4, kn=1e10, roughness=1e-3):
 
     def observe(s, _):
         h = s.contacts.shear * s.contacts.valid[:, None]
-        return dict(shear=jnp.abs(jnp.sum(h[:, 0:2])), dilation=jnp.max(h[:, 10:12]))
+        return dict(shear=jnp.abs(jnp.sum(history_field(h, "shear"))),
+                    dilation=jnp.max(history_field(h, "dilation")))
 
     t0 = time.time()
     _, hist = bk.run(state, p, config, n_steps, record_every=20, observe=observe,

@@ -9,6 +9,7 @@ import pytest
 from jdem import InputError
 from jdem import blocks as bk
 from jdem.blocks import joint
+from jdem.blocks.cycle import history_field
 
 FN, KS = 1e3, 1e6                                   # N, N/m
 MU, MU0 = np.tan(np.deg2rad(30.0)), np.tan(np.deg2rad(45.0))
@@ -128,7 +129,9 @@ def _shear_box(cy_friction0=MU0, roughness=1e-3, *, v=0.1, overlap=1e-6, kn=1e9)
 
 def _observe(state, params):
     h = state.contacts.shear * state.contacts.valid[:, None]
-    return dict(s=jnp.sum(h[:, 0:2]), plastic=jnp.max(h[:, 4:6]), dilation=jnp.max(h[:, 10:12]))
+    field = lambda name: history_field(h, name)  # noqa: E731
+    return dict(s=jnp.sum(field("shear")), plastic=jnp.max(field("plastic")),
+                dilation=jnp.max(field("dilation")))
 
 
 def test_shear_box_follows_the_point_law_with_dilation():

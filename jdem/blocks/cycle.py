@@ -10,8 +10,8 @@ One step:
    000 eq 2-11, or the continuously yielding joint where the joint has one,
    :func:`jdem.blocks.joint.yielding_point`) plus contact dashpots (000 eq 2-12
    in rate form: a fraction ``contact_damping`` of the critical c = 2 sqrt(m* k),
-   the shear one off while the point slips, as the book says), forces and moments summed on the blocks
-   (000 eq 2-13, 2-14) with gravity and applied loads;
+   the shear one off while the point slips, as the book says), forces and
+   moments summed on the blocks (000 eq 2-13, 2-14) with gravity and applied loads;
 3. damping of the unbalanced force and moment (000 §3.2, the particles' laws of
    :mod:`jdem.damping`);
 4. velocities v += F / m dt, spin w += M / I dt (000 eq 2-15), except for
@@ -52,7 +52,16 @@ from jdem.state import Config, Contacts
 from jdem.timestep import damped_limit
 from jdem.validate import InputError
 
-HISTORY = 6 * detect.POINTS_PER_PAIR     # six numbers per point (module docstring)
+# the history of a pair, in this order, one column per contact point (module docstring)
+HISTORY_FIELDS = ("shear", "intact", "plastic", "ratio", "sign", "dilation")
+HISTORY = len(HISTORY_FIELDS) * detect.POINTS_PER_PAIR
+
+
+def history_field(history, name):
+    """The (C, 2) columns of ``name`` (one of :data:`HISTORY_FIELDS`) in a pair
+    list's history ``contacts.shear`` (C, 12)."""
+    k = HISTORY_FIELDS.index(name) * detect.POINTS_PER_PAIR
+    return history[:, k:k + detect.POINTS_PER_PAIR]
 
 
 class BlockParams(NamedTuple):
@@ -247,9 +256,9 @@ def contact_forces(state: BlockState, params: BlockParams, *, sharp_corners=Fals
     """
     b, c = state.blocks, state.contacts
     g = detect.pair_geometry(b, c.i, c.j, 0.0 if sharp_corners else params.corner_radius)
-    shear_old = c.shear[:, 0:2]
-    intact_old = c.shear[:, 2:4] > 0.5
-    plastic_old, ratio_old, sign_old, dilation_old = (c.shear[:, k:k + 2] for k in (4, 6, 8, 10))
+    shear_old, intact_old, plastic_old, ratio_old, sign_old, dilation_old = (
+        history_field(c.shear, name) for name in HISTORY_FIELDS)
+    intact_old = intact_old > 0.5
     ma, mb = b.material[c.i], b.material[c.j]
     kn, ks, mu, coh, ten, jrc, jcs, kn_face, ks_face, mu0, rough_r = (
         getattr(params, name)[ma, mb][:, None] for name in JOINT_TABLE)
@@ -321,8 +330,9 @@ def contact_forces(state: BlockState, params: BlockParams, *, sharp_corners=Fals
     force = segment_add(pair_force, c.j, nb) - segment_add(pair_force, c.i, nb)
     moment = segment_add(jnp.sum(cross_r_f(rj, force_j), axis=1), c.j, nb) - \
         segment_add(jnp.sum(cross_r_f(ri, force_j), axis=1), c.i, nb)
-    history = jnp.concatenate([fs, intact.astype(fs.dtype), plastic, ratio, sign, dilation],
-                              axis=1)
+    fields = dict(shear=fs, intact=intact.astype(fs.dtype), plastic=plastic, ratio=ratio,
+                  sign=sign, dilation=dilation)
+    history = jnp.concatenate([fields[name] for name in HISTORY_FIELDS], axis=1)
     contacts = c._replace(shear=jnp.where(c.valid[:, None], history, 0.0))
     info = ContactForces(normal=g.normal, point=g.point, fn=fn_total, fs=fs_total,
                          active=active, sliding=sliding & active, intact=intact,
@@ -368,7 +378,8 @@ def glue_joints(state: BlockState, params: BlockParams, config: Config,
     glued = c.valid[:, None] & g.exists & (g.separation <= tolerance)
     if where is not None:
         glued = glued & jnp.asarray(where(np.asarray(g.point), np.asarray(g.normal)))
-    hist = c.shear.at[:, 2:4].set(glued.astype(c.shear.dtype))
+    k = HISTORY_FIELDS.index("intact") * detect.POINTS_PER_PAIR
+    hist = c.shear.at[:, k:k + detect.POINTS_PER_PAIR].set(glued.astype(c.shear.dtype))
     return state._replace(contacts=c._replace(shear=hist))
 
 

@@ -115,7 +115,8 @@ def yielding_point(fn, d_shear, shear_old, plastic_old, ratio_old, sign_old, ks,
 
     Per the book: s_max = sigma_n tan(phi_e) sign(du_s); on a reversal of du_s
     gamma := s / s_max; F = (s_max - s) / (s_max (1 - gamma)) (at most 1);
-    s += F k_s du_s; u_p += |du_s| (1 - F); the dilation angle
+    s += F k_s du_s; u_p += |du_s| (1 - F) (plus any force the guard below
+    takes off, over k_s); the dilation angle
     i = max(0, atan(|s| / sigma_n) - phi) adds |du_s| tan(i) to the normal
     displacement (the book's sigma_n += k_n |du_s| tan i).  |s| never exceeds
     |s_max|.  No cohesion, no tension: a point without compression carries nothing.
