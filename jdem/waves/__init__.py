@@ -55,6 +55,7 @@ from jdem.waves.monitors import (  # noqa: F401
 )
 from jdem.waves.media import (  # noqa: F401
     contact_modulus,
+    edge_packing,
     lattice,
     random_packing,
     square_density,
@@ -75,6 +76,7 @@ from jdem.waves.bar import (  # noqa: F401
     reflection_against_reference,
     run_bar,
     with_betas,
+    with_boundary_monitors,
 )
 from jdem.waves.calibration import (  # noqa: F401
     Calibration,

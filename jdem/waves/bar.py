@@ -187,6 +187,19 @@ def with_betas(model: BarModel, *, beta_left=None, beta_right=None, wave="both")
     return model.conditions._replace(boundaries=(left, right))
 
 
+def with_boundary_monitors(model: BarModel, side="right") -> BarModel:
+    """The bar with one more monitor per disc of its ``side`` boundary ("left"
+    or "right"), in the boundary's order (bottom to top), after P1..P5: a
+    :func:`run_bar` history's ``vel[:, 5:]`` are those discs, for the peak
+    velocity along the boundary (001 Fig 12)."""
+    sides = ("left", "right")
+    if side not in sides:
+        raise InputError(f"side must be one of {sides}, got {side!r}")
+    b = model.conditions.boundaries[sides.index(side)]
+    groups = tuple(model.monitors.groups) + tuple((int(k),) for k in b.index)
+    return model._replace(monitors=Monitors(groups))
+
+
 def motion_direction(model: BarModel) -> np.ndarray:
     """Unit vector (2,) of the discs' motion in the bar: x for P, y for S."""
     return np.eye(2)[_motion(model.polarisation)]

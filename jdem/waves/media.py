@@ -1,6 +1,7 @@
 """Elastic media for wave problems (001 §2.2, §3.1): parameters that give a
-chosen P-wave speed, square and random bonded packings (Patterns A and B of
-001 Fig 2) and a stable time step for them.
+chosen P-wave speed, square and random bonded packings and random packings
+with regular edges (Patterns A, B and C of 001 Fig 10) and a stable time step
+for them.
 
 Citations ("001 eq 10") refer to the documents listed in REFERENCES.md.
 """
@@ -12,7 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jdem import timestep
+from jdem.bond import bonds_for_pairs
 from jdem.specimen import generate
+from jdem.specimen.bonding import near_pairs
 from jdem.specimen.lattice import bond_touching, lattice_packing
 from jdem.state import Params, make_params, make_particles
 from jdem.validate import InputError, require_positive
@@ -83,6 +86,66 @@ def random_packing(length, height, r_min, r_max, *, density=2500.0, seed=0, fix_
     if fix_rotation:
         parts = parts._replace(fixed_rot=jnp.ones_like(parts.fixed_rot))
     return parts, sp.bonds, float(sp.porosity)
+
+
+
+EDGE_SIDES = ("left", "right")
+
+
+def edge_packing(length, height, r_min, r_max, edge_radius, *, sides=EDGE_SIDES,
+                 density=2500.0, seed=0, fix_rotation=False, edge_gap=None):
+    """Pattern C of 001 §2.3.1 (Fig 10(c)): a random interior (radii uniform in
+    [r_min, r_max], :func:`jdem.specimen.generate`) between columns of equal
+    discs of radius ``edge_radius`` [m] on the ``sides`` ("left", "right") of
+    [0, length] x [0, height], so that every boundary disc has the same width D
+    (001 Fig 11) while the interior stays random.
+
+    ``height`` must hold a whole number of edge discs (2 edge_radius each).  The
+    interior fills the box between the columns; its own bonds are those of the
+    generator (gap <= its gap tolerance); a column disc is bonded to its column
+    neighbours and to every interior disc within ``edge_gap`` [m] (default half
+    the interior's mean radius: the column is straight, the interior's face is
+    not).  Disc density is rho / (1 - porosity) over the whole bar, as in
+    :func:`random_packing`.  Returns ``(particles, bonds, porosity, is_edge)``,
+    ``is_edge`` (N,) bool marking the column discs.
+    """
+    length = float(require_positive("length", length))
+    height = float(require_positive("height", height))
+    r_e = float(require_positive("edge_radius", edge_radius))
+    bad = [s for s in sides if s not in EDGE_SIDES]
+    if bad or not sides:
+        raise InputError(f"sides must be a non-empty subset of {EDGE_SIDES}, got {sides!r}")
+    n_col = height / (2.0 * r_e)
+    if abs(n_col - round(n_col)) > 1e-9 * n_col:
+        raise InputError(f"edge_radius = {edge_radius!r}: height {height!r} holds "
+                         f"{n_col:.4f} edge discs, not a whole number")
+    n_col = int(round(n_col))
+    x0 = 2.0 * r_e if "left" in sides else 0.0
+    x1 = length - 2.0 * r_e if "right" in sides else length
+    if x1 - x0 <= 4.0 * float(r_max):
+        raise InputError(f"edge_radius = {edge_radius!r} leaves no room for the interior of a "
+                         f"{length!r} m bar")
+    sp = generate("rectangle", (x1 - x0, height), r_min, r_max, seed=seed)
+    pos_in = np.asarray(sp.particles.pos, np.float64)[np.asarray(sp.particles.valid)]
+    rad_in = np.asarray(sp.particles.radius, np.float64)[np.asarray(sp.particles.valid)]
+    pos_in = pos_in + np.array([x0, 0.0])
+    y = r_e * (1.0 + 2.0 * np.arange(n_col))
+    cols = [np.stack([np.full(n_col, x), y], axis=1)
+            for side, x in (("left", r_e), ("right", length - r_e)) if side in sides]
+    pos = np.concatenate([pos_in, *cols])
+    rad = np.concatenate([rad_in, np.full(n_col * len(cols), r_e)])
+    is_edge = np.arange(rad.size) >= rad_in.size
+    g_in = float(sp.info["gap_tolerance"])
+    g_edge = 0.5 * float(rad_in.mean()) if edge_gap is None else float(
+        require_positive("edge_gap", edge_gap))
+    i, j, gap = near_pairs(pos, rad, max(g_in, g_edge))
+    keep = (gap <= g_in) | ((is_edge[i] | is_edge[j]) & (gap <= g_edge))
+    solid = float(np.sum(math.pi * rad ** 2)) / (length * height)
+    parts = make_particles(pos, rad, density=density / solid)
+    if fix_rotation:
+        parts = parts._replace(fixed_rot=jnp.ones_like(parts.fixed_rot))
+    bonds = bonds_for_pairs(i[keep], j[keep], 2, dtype=parts.pos.dtype)
+    return parts, bonds, 1.0 - solid, is_edge
 
 
 
