@@ -22,8 +22,8 @@ packings of one mean radius, as 001 Fig 10 (the seed: mean 0.5 m; here 5x or
 
 For each pattern with beta_2P = 1: the widths D of the right-boundary discs
 along the boundary (001 Fig 11) and each disc's peak x velocity (001 Fig 12),
-their mean and spread; then the ratio iteration (001 Fig 5) on the boundary's
-mean peak (calibrate_ratio), and the largest |v_x| at P3 after the incident
+their mean and spread; then the ratio iteration (001 Fig 5) on the peak of the
+boundary discs' mean velocity (P5, calibrate_ratio), and the largest |v_x| at P3 after the incident
 pulse (jdem.waves.reflection; on a random packing this includes the medium's
 own scattering, see experiments/pwave_bar.py) before and after it.
 

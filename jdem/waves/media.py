@@ -65,11 +65,16 @@ def square_density(density):
 
 
 
+def _rotation_held(particles, fix_rotation):
+    """``particles`` with every rotation fixed when ``fix_rotation`` (001 §2.2)."""
+    if not fix_rotation:
+        return particles
+    return particles._replace(fixed_rot=jnp.ones_like(particles.fixed_rot))
+
+
 def lattice(pos, rad, disc_density, *, fix_rotation=False, dtype=None):
     """Particles and bonds of an assembly whose touching neighbours are bonded."""
-    p = make_particles(pos, rad, density=disc_density, dtype=dtype)
-    if fix_rotation:
-        p = p._replace(fixed_rot=jnp.ones_like(p.fixed_rot))
+    p = _rotation_held(make_particles(pos, rad, density=disc_density, dtype=dtype), fix_rotation)
     return p, bond_touching(p)
 
 
@@ -82,9 +87,8 @@ def random_packing(length, height, r_min, r_max, *, density=2500.0, seed=0, fix_
     sp = generate("rectangle", (float(length), float(height)), r_min, r_max, seed=seed)
     solid = 1.0 - sp.porosity
     p = sp.particles
-    parts = make_particles(np.asarray(p.pos), np.asarray(p.radius), density=density / solid)
-    if fix_rotation:
-        parts = parts._replace(fixed_rot=jnp.ones_like(parts.fixed_rot))
+    parts = _rotation_held(make_particles(np.asarray(p.pos), np.asarray(p.radius),
+                                          density=density / solid), fix_rotation)
     return parts, sp.bonds, float(sp.porosity)
 
 
@@ -141,9 +145,7 @@ def edge_packing(length, height, r_min, r_max, edge_radius, *, sides=EDGE_SIDES,
     i, j, gap = near_pairs(pos, rad, max(g_in, g_edge))
     keep = (gap <= g_in) | ((is_edge[i] | is_edge[j]) & (gap <= g_edge))
     solid = float(np.sum(math.pi * rad ** 2)) / (length * height)
-    parts = make_particles(pos, rad, density=density / solid)
-    if fix_rotation:
-        parts = parts._replace(fixed_rot=jnp.ones_like(parts.fixed_rot))
+    parts = _rotation_held(make_particles(pos, rad, density=density / solid), fix_rotation)
     bonds = bonds_for_pairs(i[keep], j[keep], 2, dtype=parts.pos.dtype)
     return parts, bonds, 1.0 - solid, is_edge
 
