@@ -229,6 +229,7 @@ def test_timestep_above_critical_is_refused():
 
 
 # ----------------------------------------------------------------------------- gradients
+@pytest.mark.slow
 def test_friction_and_stiffness_recovered_from_a_sliding_history():
     """Differentiable block method: the friction coefficient and the joint
     stiffness of a block sliding down a 35 degree slope (phi = 30) are recovered
@@ -237,7 +238,9 @@ def test_friction_and_stiffness_recovered_from_a_sliding_history():
     calibration's bounded transform, solver and intervals), from -20 % and -50 % starts.
     (A start above the slope's angle would not slide: no information on mu; the
     contact dashpots at 0.7 of critical damp the bounce, which would otherwise
-    make the misfit oscillate in k_n.)"""
+    make the misfit oscillate in k_n.)  Slow (~2 min): the block path's
+    derivative is checked by default in tests/test_blocks_yielding.py, the fit
+    machinery on an oscillator in tests/test_calibrate.py."""
     from jdem.calibrate import fit_model
 
     state, p, config = _incline(0.5, 0.5, 35.0, 30.0, kn=2e8, zeta=0.7)
