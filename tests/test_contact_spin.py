@@ -660,3 +660,32 @@ def test_a_floor_moving_under_a_resting_disc_drags_it_at_mu_g_and_carries_its_we
     out = jdem.advance(moving, params, cfg, n)
     vx = float(out.particles.vel[0, 0])
     np.testing.assert_allclose(vx, mu * g * n * 2e-6, rtol=2e-2)
+
+
+def test_norms_and_the_history_rotation_have_finite_gradients_at_zero():
+    """A fresh contact stores a zero shear vector, and a stored one can lie along
+    the new normal: the rollout's gradient passes through safe_norm and
+    rotate_into_plane there, and must stay finite.  safe_norm's gradient at the
+    zero vector is 0; rotate_into_plane keeps the length of a tangential vector
+    (jacobian the identity on the tangent plane) and has finite jacobians where
+    the vector is zero or along the normal."""
+    from jdem import kinematics as km
+
+    for d in (2, 3):
+        n = jnp.zeros((1, d)).at[0, 1].set(1.0)           # normal +y
+        zero = jnp.zeros((1, d))
+        g = jax.grad(lambda v: jnp.sum(km.safe_norm(v)))(zero)
+        np.testing.assert_array_equal(np.asarray(g), 0.0)
+        assert np.all(np.isfinite(np.asarray(jax.grad(lambda v: jnp.sum(km.unit(v)[0]))(zero))))
+        rot = lambda v: km.rotate_into_plane(v, n)[0]      # noqa: E731
+        along = n * 2.0                                    # all along the normal: no tangential part
+        tangential = jnp.zeros((1, d)).at[0, 0].set(3.0)
+        np.testing.assert_array_equal(np.asarray(rot(zero)), 0.0)
+        np.testing.assert_array_equal(np.asarray(rot(along)), 0.0)
+        np.testing.assert_allclose(np.asarray(rot(tangential)), np.asarray(tangential[0]),
+                                   rtol=1e-15)
+        for v in (zero, along):
+            for jac in (jax.jacfwd(rot)(v), jax.jacrev(rot)(v)):
+                assert np.all(np.isfinite(np.asarray(jac))), (d, v, jac)
+        jt = np.asarray(jax.jacfwd(rot)(tangential))[:, 0, :]
+        np.testing.assert_allclose(jt[0, 0], 1.0, rtol=1e-15)       # length kept along x
