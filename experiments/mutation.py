@@ -53,7 +53,8 @@ TESTS = {
     "damping": ["tests/test_damping_timestep.py"],
     "timestep": ["tests/test_damping_timestep.py", "tests/test_input_errors.py"],
     "kinematics": ["tests/test_contact_spin.py", "tests/test_bond_unequal.py"],
-    "walls": ["tests/test_contact_laws.py", "tests/test_contact_spin.py", "tests/test_engine.py"],
+    "walls": ["tests/test_guard.py", "tests/test_contact_laws.py", "tests/test_contact_spin.py",
+              "tests/test_engine.py"],
     "neighbors": ["tests/test_neighbors.py", "tests/test_history_reorder.py"],
     "integrate": ["tests/test_integrate.py", "tests/test_engine.py", "tests/test_guard.py"],
 }
