@@ -687,5 +687,6 @@ def test_norms_and_the_history_rotation_have_finite_gradients_at_zero():
         for v in (zero, along):
             for jac in (jax.jacfwd(rot)(v), jax.jacrev(rot)(v)):
                 assert np.all(np.isfinite(np.asarray(jac))), (d, v, jac)
-        jt = np.asarray(jax.jacfwd(rot)(tangential))[:, 0, :]
-        np.testing.assert_allclose(jt[0, 0], 1.0, rtol=1e-15)       # length kept along x
+        jt = np.asarray(jax.jacfwd(rot)(tangential))[:, 0, :]       # (d, d)
+        tangent_plane = np.eye(d) - np.outer(np.asarray(n[0]), np.asarray(n[0]))
+        np.testing.assert_allclose(jt, tangent_plane, rtol=0, atol=1e-15)
