@@ -392,7 +392,11 @@ def reallocate(contacts: Contacts, particles: Particles, config: Config, bonds=N
     :func:`room_for` of the most pairs any build found (``contacts.n_pairs``),
     never less than it was; ``config.max_per_cell`` grows to the fullest cell
     seen plus 2.  The list is then rebuilt at the current positions, keeping
-    the tangential history of the pairs it holds.  Works on a batch (leading
+    the tangential history of the pairs it holds.  A build whose cells were
+    too full counted only the pairs of the members it kept, so the rebuilt list
+    may still be short: the sizes then grow to what the rebuild found and the
+    rebuild starts again from ``contacts``, so no pair's history is lost to a
+    list that was too small and one call is enough.  Works on a batch (leading
     member axis on ``contacts``, ``particles`` and ``bonds``): every member gets
     the same capacity.  Returns ``(contacts, config)``.
 
@@ -404,10 +408,17 @@ def reallocate(contacts: Contacts, particles: Particles, config: Config, bonds=N
     need_pairs = int(np.max(np.asarray(contacts.n_pairs)))
     need_cell = int(np.max(np.asarray(contacts.max_in_cell)))
     cap = max(old_cap, room_for(need_pairs) if capacity is None else int(capacity))
-    config = config.replace(max_per_cell=max(config.max_per_cell, need_cell + 2))
+    while True:
+        config = config.replace(max_per_cell=max(config.max_per_cell, need_cell + 2))
 
-    def regrow(c, p, b):
-        return build(_resize(c, cap), p, config, b)
+        def regrow(c, p, b):
+            return build(_resize(c, cap), p, config, b)
 
-    fn = jax.vmap(regrow) if contacts.i.ndim == 2 else regrow
-    return jax.jit(fn)(contacts, particles, bonds), config
+        fn = jax.vmap(regrow) if contacts.i.ndim == 2 else regrow
+        grown = jax.jit(fn)(contacts, particles, bonds)
+        if not bool(overflowed(grown, config)):
+            return grown, config
+        # the rebuild saw more than the failed build could count: size from it
+        need_pairs = int(np.max(np.asarray(grown.n_pairs)))
+        need_cell = int(np.max(np.asarray(grown.max_in_cell)))
+        cap = max(cap, room_for(need_pairs))

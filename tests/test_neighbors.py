@@ -168,13 +168,14 @@ def test_a_list_of_no_rows_carries_no_history_and_room_has_a_floor():
         assert rows < 1.25 * need + 16 + 1 + 64          # aligned to 64 rows
 
 
-def test_reallocate_after_a_cell_overflow_lists_every_pair():
-    """A list built with cells that hold too few particles is flagged;
-    ``reallocate`` gives the cells room for what the build saw at once, and as
-    the host loops do (reallocate while flagged) the list is complete after at
-    most two: the first build counted 268 of the 646 pairs (the rest were lost
-    with the dropped cell members), so the list sized from that count is still
-    short once.  The rebuilt list is the brute-force set."""
+def test_reallocate_after_a_cell_overflow_lists_every_pair_and_keeps_history():
+    """A list built with cells that hold too few particles is flagged.  The
+    build counted 268 of the 646 pairs (the rest were lost with the dropped
+    cell members), so a list sized from that count alone is still short;
+    one ``reallocate`` grows it to what its own rebuild finds and starts that
+    rebuild again from the given list, so the result is the brute-force set,
+    is not flagged, and every pair the first list held keeps its tangential
+    history (a second, truncating rebuild in between would have dropped some)."""
     rng = np.random.default_rng(1)
     pos = rng.uniform(0, 0.01, size=(200, 2))
     rad = np.full(200, 5e-4)
@@ -182,10 +183,16 @@ def test_reallocate_after_a_cell_overflow_lists_every_pair():
     cfg = jdem.make_config(p, skin=1e-4).replace(max_per_cell=2)
     c = neighbors.build(neighbors.empty(p, 10), p, cfg)
     assert bool(neighbors.overflowed(c, cfg)) and int(c.max_in_cell) > 3
-    for _ in range(2):
-        c, cfg = neighbors.reallocate(c, p, cfg)
-        assert cfg.max_per_cell >= int(c.max_in_cell)
-        if not bool(neighbors.overflowed(c, cfg)):
-            break
-    assert not bool(neighbors.overflowed(c, cfg))
-    assert _pairs(c) == _brute_pairs(pos, rad, 1e-4)
+    assert neighbors.room_for(int(c.n_pairs)) < len(_brute_pairs(pos, rad, 1e-4))
+    # mark the held pairs' history with a value unique to each row
+    tag = jnp.stack([jnp.arange(10.0) + 1.0, -(jnp.arange(10.0) + 1.0)], axis=1)
+    c = c._replace(shear=jnp.where(c.valid[:, None], tag, 0.0))
+    before = _pairs(c, with_shear=True)
+    out, cfg2 = neighbors.reallocate(c, p, cfg)
+    assert not bool(neighbors.overflowed(out, cfg2))
+    assert cfg2.max_per_cell >= int(out.max_in_cell)
+    assert _pairs(out) == _brute_pairs(pos, rad, 1e-4)
+    after = _pairs(out, with_shear=True)
+    assert before
+    for pair, shear in before.items():
+        np.testing.assert_array_equal(after[pair], shear)
