@@ -443,6 +443,49 @@ def test_bond_bound_counts_every_spring_and_dashpot(radius):
         assert crit == pytest.approx(expect, rel=1e-12), (free, spins)
 
 
+def test_a_sphere_spinning_on_a_bond_counts_the_twist_spring():
+    """3D: a sphere held in place but free to spin, bonded to a held sphere
+    (equal radii R, circular section of diameter 2R, 002 eq 5: A_c = pi R^2,
+    I_b = pi R^4 / 4, J = 2 I_b).  Its rotational bound adds the twist spring to
+    the 2D terms: 2 / sqrt(2 (K_s L^2 / 4 + (K_n I_b + K_s J) / A_c) / I)."""
+    pos = np.array([[0.0, 0.0, 0.0], [2 * R, 0.0, 0.0]])
+    parts = jdem.make_particles(pos, [R, R], density=RHO, fixed_vel=np.ones((2, 3), bool),
+                                fixed_rot=np.array([[True] * 3, [False] * 3]))
+    state, config = jdem.make_state(parts, bonds=create_bonds(parts, 3, gap_tolerance=1e-9))
+    g = bond_geometry(state.bonds, state.particles, _params(3, 1e-6), 3)
+    kn, ks, L = float(g.kn[0]), float(g.ks[0]), float(g.length[0])
+    area, i_b = np.pi * R ** 2, np.pi * R ** 4 / 4
+    np.testing.assert_allclose([float(g.area[0]), float(g.I[0]), float(g.J[0])],
+                               [area, i_b, 2 * i_b], rtol=1e-12)
+    k_rot = ks * L ** 2 / 4 + (kn * i_b + ks * 2 * i_b) / area
+    crit = float(timestep.critical_timestep(state, _params(3, 1e-9), config))
+    assert crit == pytest.approx(2 / np.sqrt(2 * k_rot / float(parts.inertia[1])), rel=1e-12)
+
+
+def test_a_disc_spinning_against_a_wall_counts_the_wall_shear_spring():
+    """A disc held in place, free to spin, pressed on a wall (linear law, overlap
+    1e-4 m): the wall's shear spring at arm a' = r - overlap / 2 gives
+    I theta'' = -k_s a'^2 theta, so the centred step is stable below
+    2 / omega, omega^2 = k_s a'^2 / I: at 0.95 of it the spin energy stays bounded,
+    at 1.05 it grows.  ``critical_timestep`` is the docstring's bound
+    2 / sqrt(2 k_s r^2 / I) (arm r), below 2 / omega."""
+    overlap = 1e-4
+    parts = jdem.make_particles(np.array([[0.0, RA - overlap]]), [RA], density=RHO,
+                                fixed_vel=np.ones((1, 2), bool), fixed_rot=np.array([False]))
+    walls = jdem.make_walls([np.zeros(2)], [np.array([0.0, 1.0])], n_particles=1)
+    state, config = jdem.make_state(parts, walls=walls)
+    inertia = float(parts.inertia[0])
+    omega = np.sqrt(KS * (RA - 0.5 * overlap) ** 2 / inertia)
+    for factor, grows in ((0.95, False), (1.05, True)):
+        p = state.particles
+        spun = state._replace(particles=p._replace(angvel=jnp.array([1e-3])))
+        energy = np.asarray(_spin_chunk(spun, _contact_params(factor * 2 / omega), config))
+        assert (np.max(energy[-50:]) / energy[0] > 1e6) == grows
+    crit = float(timestep.critical_timestep(state, _contact_params(1e-9), config))
+    assert crit == pytest.approx(2 / np.sqrt(2 * KS * RA ** 2 / inertia), rel=1e-12)
+    assert crit < 2 / omega
+
+
 def _hex_lattice(radius, overlap_ratio, rows=5, cols=5):
     d = 2 * radius * (1 - 0.5 * overlap_ratio)           # centre spacing
     pos = np.array([[d * (c + 0.5 * (r % 2)), d * np.sqrt(3) / 2 * r]
