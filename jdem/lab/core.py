@@ -281,12 +281,30 @@ def checked_curve(setup: Setup, params: Params | None = None, *, max_grow=4):
 @functools.lru_cache(maxsize=8)   # each program holds memory mappings
 def record_chunk(plan: Plan, n: int):
     """The jitted chunk the host loop :func:`run` runs: ``fn(state, params, frame,
-    k0)`` takes records ``k0 .. k0 + n - 1`` (``k0`` an int32 scalar) and returns
-    ``(state, raw records)``; one program per (plan, n), cached."""
-    def records(state, params, frame, k0):
-        return jax.lax.scan(_block(plan, params, frame), state, k0 + jnp.arange(n))
+    k0, n_run=n)`` takes records ``k0 .. k0 + n_run - 1`` (``k0`` an int32
+    scalar, ``0 <= n_run <= n``) and returns ``(state, raw records)`` with
+    ``n`` records on axis 0, of which the first ``n_run`` are real (the rest
+    hold zeros and leave the state alone).  One program per (plan, n), cached:
+    a run's last, shorter chunk and the rerun up to a peak reuse the program of
+    its full chunks instead of compiling one of their own."""
+    def records(state, params, frame, k0, n_run):
+        block = _block(plan, params, frame)
 
-    return jax.jit(records)
+        def skip(s, k):   # past the end of this call: no steps, an empty record
+            shapes = jax.eval_shape(block, s, k)[1]
+            return s, jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
+
+        def maybe(s, k):
+            return jax.lax.cond(k < k0 + n_run, block, skip, s, k)
+
+        return jax.lax.scan(maybe, state, k0 + jnp.arange(n))
+
+    jitted = jax.jit(records)
+
+    def fn(state, params, frame, k0, n_run=n):
+        return jitted(state, params, frame, k0, jnp.asarray(n_run, jnp.int32))
+
+    return fn
 
 
 def _strong(tree):
@@ -340,7 +358,7 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
     failures = []
     if check_dt:
         _check_timestep(setup, params, failures)
-    per = chunk_records or max(1, 2000 // plan.record_every)
+    per = min(chunk_records or max(1, 2000 // plan.record_every), plan.n_records)
     nb = setup.n_members
     state, frame = _strong(setup.state), _strong(setup.frame)
     for f in failures:
@@ -359,8 +377,8 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
         while k0 < plan.n_records:
             n = min(per, plan.n_records - k0)
             earlier = [f.member for f in failures]
-            fn = record_chunk(plan, n)
-            new_state, raw = fn(state, params, frame, jnp.asarray(k0, jnp.int32))
+            fn = record_chunk(plan, max(per, 1))    # one program for every chunk
+            new_state, raw = fn(state, params, frame, jnp.asarray(k0, jnp.int32), n)
             if bool(neighbors.overflowed(new_state.contacts, plan.config)):
                 need = state.contacts._replace(n_pairs=new_state.contacts.n_pairs,
                                                max_in_cell=new_state.contacts.max_in_cell)
@@ -370,7 +388,7 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
                 plan = plan.replace(config=config)
                 setup = setup.replace(plan=plan)
                 continue
-            raw = {key: np.asarray(v) for key, v in raw.items()}
+            raw = {key: np.asarray(v)[:n] for key, v in raw.items()}
             bad = np.asarray(new_state.first_bad_step).reshape(-1)
             if np.any(bad >= 0):
                 try:
@@ -409,7 +427,8 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
                         if stress[b, j] > peak_val[b]:
                             peak_val[b] = stress[b, j]
                             if j >= stress.shape[1] - n_new:   # in this chunk: its record
-                                peak_at[b] = (start, k0 - n, n - (stress.shape[1] - j), plan)
+                                peak_at[b] = (start, k0 - n, n - (stress.shape[1] - j), plan,
+                                              per)
                     if stop_stress_ratio is not None and stress.shape[1] > n_new:
                         gone = np.isin(np.arange(nb), [f.member for f in failures])
                         with np.errstate(invalid="ignore"):
@@ -453,9 +472,9 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
             if peak_at[b] is None:
                 raise InputError("keep_peak_state: the peak lies in the part of the run "
                                  "before the resumed checkpoint; run it without resume")
-            s0, kstart, j, plan_b = peak_at[b]
-            fn = record_chunk(plan_b, j + 1)
-            s, _ = fn(s0, params, frame, jnp.asarray(kstart, jnp.int32))
+            s0, kstart, j, plan_b, per_b = peak_at[b]
+            fn = record_chunk(plan_b, per_b)       # the run's program, stopped after record j
+            s, _ = fn(s0, params, frame, jnp.asarray(kstart, jnp.int32), j + 1)
             rec = pattern.bond_record(member(s, b) if plan.batched else s, "peak_")
             rec["peak_step"] = np.asarray(np.asarray(s.step).reshape(-1)[b if plan.batched else 0])
             recs.append(rec)
