@@ -29,7 +29,8 @@ The damping rate of each particle is bounded by the same row sum,
 with c = 2 zeta sqrt(m* k) for the normal contact and wall dashpots
 (``Params.contact_damping``) and the normal and shear dashpots of intact bonds
 (``Params.bond_damping``), m* the reduced mass; the critical step is the
-smallest of these per-particle limits.  The step therefore falls as the
+smallest of these per-particle limits.  A particle with no spring keeps the
+limit of its viscous damping alone, dt < 2 / viscous_damping.  The step therefore falls as the
 dashpots grow (zeta = 1: 0.41 of the undamped step, zeta = 50: 0.01), so no
 upper bound on the damping ratios is needed: :func:`check_timestep` refuses a
 step above the damped limit.  Local non-viscous damping (000 eq 3-19) is not
@@ -117,20 +118,28 @@ def _dashpot_sums(state: State, params: Params, config: Config):
 
 def damped_limit(w2, g):
     """2 / (sqrt(w2 + g^2 / 4) + g / 2): the stable step of a mass-spring-dashpot
-    with omega^2 = w2 and c / m = g; infinite where w2 = 0 (no spring)."""
-    spring = w2 > 0
+    with omega^2 = w2 and c / m = g.  Without a spring (w2 = 0) it is 2 / g, the
+    limit of the dashpot alone (v+ = (1 - dt g) v-); infinite where w2 = g = 0."""
     half = 0.5 * g
-    root = jnp.sqrt(jnp.where(spring, w2, 1.0) + half * half) + half
-    return jnp.where(spring, 2.0 / root, jnp.inf)
+    root = jnp.sqrt(w2 + half * half) + half
+    moving = root > 0
+    return jnp.where(moving, 2.0 / jnp.where(moving, root, 1.0), jnp.inf)
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
 def critical_timestep(state: State, params: Params, config: Config):
     """Largest stable step for the current contacts and bonds [s] (scalar),
     including their dashpots and the viscous damping (module docstring).
 
-    Infinite when nothing touches; use :func:`nominal_critical_timestep` then.
+    Where nothing touches it is the limit of the viscous damping alone,
+    2 / ``viscous_damping`` (infinite without it); use
+    :func:`nominal_critical_timestep` for the contacts to come.
     """
+    return _critical_and_touching(state, params, config)[0]
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _critical_and_touching(state: State, params: Params, config: Config):
+    """(critical step [s], whether any free particle has a spring), scalars."""
     p = state.particles
     k_tr, k_rot = _stiffness_sums(state, params, config)
     c_tr, c_rot = _dashpot_sums(state, params, config)
@@ -141,9 +150,11 @@ def critical_timestep(state: State, params: Params, config: Config):
     # rotation count apart (a particle held in place may still spin, and one whose
     # spin is held may still move)
     held_rot = p.fixed_rot if p.fixed_rot.ndim == 1 else jnp.all(p.fixed_rot, axis=-1)
-    dt = jnp.minimum(jnp.where(p.valid & ~jnp.all(p.fixed_vel, axis=-1), dt_tr, jnp.inf),
-                     jnp.where(p.valid & ~held_rot, dt_rot, jnp.inf))
-    return jnp.min(dt, initial=jnp.inf)
+    free_tr = p.valid & ~jnp.all(p.fixed_vel, axis=-1)
+    free_rot = p.valid & ~held_rot
+    dt = jnp.minimum(jnp.where(free_tr, dt_tr, jnp.inf), jnp.where(free_rot, dt_rot, jnp.inf))
+    touching = jnp.any((free_tr & (k_tr > 0)) | (free_rot & (k_rot > 0)))
+    return jnp.min(dt, initial=jnp.inf), touching
 
 
 def nominal_critical_timestep(particles, params: Params, config: Config, *, coordination=None,
@@ -174,22 +185,21 @@ def check_timestep(state: State, params: Params, config: Config):
     (damping included; the message names the damping fields that are on).  The
     material indices are checked first (:func:`jdem.validate.check_materials`)."""
     check_materials(state, params)
-    dt = np.asarray(params.dt)
-    crit = np.asarray(critical_timestep(state, params, config))
-    if not np.all(np.isfinite(crit)):
-        crit = np.minimum(crit, np.asarray(nominal_critical_timestep(state.particles, params, config)))
-    if np.any(dt > crit):
-        k = int(np.argmax(np.asarray(dt - crit).reshape(-1)))
+    dt = float(params.dt)
+    crit, touching = _critical_and_touching(state, params, config)
+    crit = float(crit)
+    if not bool(touching):      # the contacts to come
+        crit = min(crit, float(nominal_critical_timestep(state.particles, params, config)))
+    if dt > crit:
         damped = [f"params.{name} = {float(np.max(np.asarray(getattr(params, name)))):g}"
                   for name in ("contact_damping", "bond_damping", "viscous_damping")
                   if np.any(np.asarray(getattr(params, name)) > 0)]
         with_damping = (f", which includes the damping {', '.join(damped)} (dt_crit = "
                         f"(2 / omega)(sqrt(1 + zeta^2) - zeta))" if damped else "")
         raise InputError(
-            f"params.dt = {float(np.asarray(dt).reshape(-1)[k % dt.size]):.4g} s exceeds the critical "
-            f"time step {float(np.asarray(crit).reshape(-1)[k % crit.size]):.4g} s (000 eq 3-24)"
+            f"params.dt = {dt:.4g} s exceeds the critical time step {crit:.4g} s (000 eq 3-24)"
             f"{with_damping}; use at most jdem.timestep.recommended(critical) = "
-            f"{float(recommended(np.min(crit))):.4g} s")
+            f"{recommended(crit):.4g} s")
     return crit
 
 

@@ -522,8 +522,49 @@ def test_check_timestep_without_contacts_uses_the_nominal_step():
     nominal = float(timestep.nominal_critical_timestep(state.particles, prm, config))
     assert np.isfinite(nominal)
     timestep.check_timestep(state, prm._replace(dt=jnp.asarray(0.9 * nominal)), config)
+    timestep.check_timestep(state, prm._replace(dt=jnp.asarray(nominal)), config)  # "at most"
     with pytest.raises(jdem.InputError, match="params.dt"):
         timestep.check_timestep(state, prm._replace(dt=jnp.asarray(1.1 * nominal)), config)
+
+
+def test_nominal_step_assumes_four_neighbours_in_2d_and_six_in_3d():
+    """The default coordination of ``nominal_critical_timestep``: 4 discs, 6 spheres."""
+    for dim, z, other in ((2, 4, 6), (3, 6, 4)):
+        parts = jdem.make_particles(np.zeros((1, dim)), [0.01], density=RHO)
+        _, config = jdem.make_state(parts)
+        prm = jdem.make_params(dim=dim, dt=1e-9, kn=KN, ks=KS)
+        step = lambda **kw: float(timestep.nominal_critical_timestep(parts, prm, config, **kw))
+        assert step() == step(coordination=z)
+        assert step() != pytest.approx(step(coordination=other), rel=1e-3)
+
+
+def test_a_free_disc_under_viscous_damping_is_stable_below_two_over_c():
+    """A disc touching nothing, spinning, with viscous damping c [1/s]: the step
+    gives w+ = (1 - dt c) w-, stable for dt < 2 / c (the dashpot alone).  At 0.95
+    of it the spin energy decays, at 1.05 it grows; ``critical_timestep`` is
+    2 / c.  ``check_timestep`` still guards the contacts to come with the nominal
+    step (which counts c as well)."""
+    parts = jdem.make_particles(np.zeros((1, 2)), [RA], density=RHO)
+    state, config = jdem.make_state(parts)
+    spun = state._replace(particles=state.particles._replace(angvel=jnp.array([1e-3])))
+    c = 1e4
+    for factor, grows in ((0.95, False), (1.05, True)):
+        energy = np.asarray(_spin_chunk(spun, _contact_params(factor * 2 / c, viscous_damping=c),
+                                        config))
+        assert (np.max(energy[-50:]) / energy[0] > 1e6) == grows
+        assert (energy[-1] < energy[0]) != grows
+    crit = float(timestep.critical_timestep(state, _contact_params(1e-9, viscous_damping=c),
+                                            config))
+    assert crit == pytest.approx(2 / c, rel=1e-12)
+    assert np.isinf(float(timestep.critical_timestep(state, _contact_params(1e-9), config)))
+    # weak damping: 2 / c lies far above the nominal step, which still rules
+    prm = _contact_params(1e-9, viscous_damping=1e-2 / float(
+        timestep.nominal_critical_timestep(state.particles, _contact_params(1e-9), config)))
+    nominal = float(timestep.nominal_critical_timestep(state.particles, prm, config))
+    assert 2 / float(prm.viscous_damping) > 100 * nominal
+    timestep.check_timestep(state, prm._replace(dt=jnp.asarray(0.99 * nominal)), config)
+    with pytest.raises(jdem.InputError, match="params.dt"):
+        timestep.check_timestep(state, prm._replace(dt=jnp.asarray(1.01 * nominal)), config)
 
 
 @pytest.mark.parametrize("uniform", [False, True])
