@@ -196,3 +196,42 @@ def test_reallocate_after_a_cell_overflow_lists_every_pair_and_keeps_history():
     assert before
     for pair, shear in before.items():
         np.testing.assert_array_equal(after[pair], shear)
+
+
+def test_padding_rows_never_fill_a_cell():
+    """Rows past the particle count (capacity) sit outside the grid: many more of
+    them than a cell holds must not flag an overflow nor enter the list."""
+    rng = np.random.default_rng(5)
+    pos = rng.uniform(0, 0.01, size=(60, 2))
+    rad = np.full(60, 5e-4)
+    p = jdem.make_particles(pos, rad, capacity=400)
+    state, cfg = jdem.make_state(p, skin=1e-4)
+    assert 340 > cfg.max_per_cell
+    c = neighbors.build(state.contacts, state.particles, cfg)
+    assert not bool(neighbors.overflowed(c, cfg))
+    assert int(c.max_in_cell) <= cfg.max_per_cell
+    assert _pairs(c) == _brute_pairs(pos, rad, 1e-4)
+
+
+def test_a_sparse_grid_one_cell_high_lists_every_pair_once():
+    """A row of discs along x, far apart, on a grid one cell high (a chain or a
+    bar; more cells than particles: the per-particle gather of neighbour cells).
+    Each pair within reach is listed once, as brute force finds it.  A cell index
+    past the top edge, if it were read, would be the next column's cell, a real
+    neighbour here: its discs would be listed twice."""
+    rng = np.random.default_rng(8)
+    x = np.sort(rng.uniform(0, 60.0, 24))
+    x[1::4] = x[0::4] + 0.9              # some pairs within reach
+    y = np.zeros(24)
+    y[1::4] = -0.5
+    pos = np.stack([x, y], axis=1)
+    rad = np.full(24, 0.5)
+    p = jdem.make_particles(pos, rad)
+    cfg = jdem.make_config(p, skin=0.1)
+    cfg = cfg.replace(grid_shape=(cfg.grid_shape[0], 1))
+    assert cfg.n_cells > 24
+    c, cfg = neighbors.allocate(p, cfg)
+    want = _brute_pairs(pos, rad, 0.1)
+    assert len(want) >= 6
+    assert _pairs(c) == want
+    assert int(np.sum(np.asarray(c.valid))) == len(want)
