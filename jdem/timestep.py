@@ -30,11 +30,11 @@ with c = 2 zeta sqrt(m* k) for the normal contact and wall dashpots
 (``Params.contact_damping``) and the normal and shear dashpots of intact bonds
 (``Params.bond_damping``), m* the reduced mass; the critical step is the
 smallest of these per-particle limits.  A particle with no spring keeps the
-limit of its viscous damping alone, dt < 2 / viscous_damping.  The step therefore falls as the
-dashpots grow (zeta = 1: 0.41 of the undamped step, zeta = 50: 0.01), so no
-upper bound on the damping ratios is needed: :func:`check_timestep` refuses a
-step above the damped limit.  Local non-viscous damping (000 eq 3-19) is not
-counted.
+limit of its viscous damping alone, dt < 2 / viscous_damping.  The step
+therefore falls as the dashpots grow (zeta = 1: 0.41 of the undamped step,
+zeta = 50: 0.01), so no upper bound on the damping ratios is needed:
+:func:`check_timestep` refuses a step above the damped limit.  Local
+non-viscous damping (000 eq 3-19) is not counted.
 
 Density scaling (000 §3.3.2, "virtual density"): for quasi-static problems the
 inertial mass may be raised so that a larger step is stable; the weight keeps

@@ -377,7 +377,7 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
         while k0 < plan.n_records:
             n = min(per, plan.n_records - k0)
             earlier = [f.member for f in failures]
-            fn = record_chunk(plan, max(per, 1))    # one program for every chunk
+            fn = record_chunk(plan, per)    # one program for every chunk
             new_state, raw = fn(state, params, frame, jnp.asarray(k0, jnp.int32), n)
             if bool(neighbors.overflowed(new_state.contacts, plan.config)):
                 need = state.contacts._replace(n_pairs=new_state.contacts.n_pairs,
@@ -393,7 +393,7 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
             if np.any(bad >= 0):
                 try:
                     new_state = _set_aside(setup.replace(state=state), params, k0, bad,
-                                           failures, raw, parts, new_state)
+                                           failures, raw, parts, new_state, fn)
                 except SimulationDiverged:
                     status = "diverged"
                     raise
@@ -485,22 +485,22 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
     return LabResult(history, state, setup, tuple(failures))
 
 
-def _good_state(setup: Setup, params, k0: int, first: int):
+def _good_state(setup: Setup, params, k0: int, first: int, chunk):
     """The state of the run started at record ``k0`` from ``setup.state`` just
-    before step ``first``: whole records, then the steps of the record that
-    holds ``first`` under that record's loading."""
+    before step ``first``: whole records (by ``chunk``, the run's
+    :func:`record_chunk` program), then the steps of the record that holds
+    ``first`` under that record's loading."""
     plan, state = setup.plan, setup.state
     start = int(np.min(np.asarray(state.step)))
     j, m = divmod(first - start, plan.record_every)
     if j:
-        state, _ = record_chunk(plan, j)(state, params, setup.frame,
-                                              jnp.asarray(k0, jnp.int32))
+        state, _ = chunk(state, params, setup.frame, jnp.asarray(k0, jnp.int32), j)
     state = plan.test.load(state, jnp.asarray(k0 + j, jnp.int32), setup.frame, plan)
     return advance(state, params, plan.config, m, batched=plan.batched,
                    boundary=(plan.test.boundary, setup.frame))
 
 
-def _set_aside(setup: Setup, params, k0, bad, failures, raw, parts, new_state):
+def _set_aside(setup: Setup, params, k0, bad, failures, raw, parts, new_state, chunk):
     """The members of a chunk started at record ``k0`` that failed the guard
     (``bad``: first bad step per member, -1 for none).  One system, or a batch
     whose every member has failed: raise :class:`SimulationDiverged` with the
@@ -512,7 +512,7 @@ def _set_aside(setup: Setup, params, k0, bad, failures, raw, parts, new_state):
     boundary = (plan.test.boundary, setup.frame)
     for b in np.flatnonzero(bad >= 0):
         first = int(bad[b])
-        good = _good_state(setup, params, k0, first)
+        good = _good_state(setup, params, k0, first, chunk)
         if not plan.batched:
             raise SimulationDiverged(first, good, _host_history(parts, setup) if parts else {},
                                      diagnose(good, params, plan.config, boundary))
