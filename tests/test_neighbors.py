@@ -235,3 +235,23 @@ def test_a_sparse_grid_one_cell_high_lists_every_pair_once():
     assert len(want) >= 6
     assert _pairs(c) == want
     assert int(np.sum(np.asarray(c.valid))) == len(want)
+
+
+def test_the_highest_numbered_pair_keeps_its_history():
+    """A chain of touching discs, each consecutive pair in contact, the last pair
+    being (n - 2, n - 1): a rebuild keeps every pair's history, that last pair's
+    too (its run of old rows is the last one the per-particle index reaches)."""
+    n = 5
+    pos = np.stack([np.arange(n) * 1.9e-3, np.zeros(n)], axis=1)
+    p = jdem.make_particles(pos, np.full(n, 1e-3))
+    state, cfg = jdem.make_state(p, skin=2e-4)
+    c = state.contacts
+    assert _pairs(c) == {(k, k + 1) for k in range(n - 1)}
+    tag = jnp.arange(c.shear.size, dtype=c.shear.dtype).reshape(c.shear.shape) + 1.0
+    c = c._replace(shear=jnp.where(c.valid[:, None], tag, 0.0))
+    before = _pairs(c, with_shear=True)
+    after = _pairs(neighbors.build(c, p, cfg), with_shear=True)
+    assert after.keys() == before.keys()
+    for pair, shear in before.items():
+        assert np.all(shear != 0.0)
+        np.testing.assert_array_equal(after[pair], shear)
