@@ -516,6 +516,10 @@ def test_bad_lab_input_names_the_field():
         lab.UCS.setup(_demo_spec(), params, damping="local")
     with pytest.raises(InputError, match="alpha must lie"):
         lab.local(1.0)
+    setup = lab.UCS.setup(_demo_spec(), params)
+    for bad in (0, -3, 2.5):
+        with pytest.raises(InputError, match="chunk_records"):
+            lab.run(setup, progress=False, chunk_records=bad)
 
 
 # ----------------------------------------------------------------------------- rate extrapolation

@@ -47,7 +47,7 @@ from jdem.simulate import (MemberFailure, SimulationDiverged, advance, blank_mem
                            check_current_step, diagnose, inert, rollout)
 from jdem.state import Config, Params, State
 from jdem.timestep import check_timestep
-from jdem.validate import InputError, check_params
+from jdem.validate import InputError, check_params, require_int
 
 
 class LabTest(NamedTuple):
@@ -347,6 +347,8 @@ def run(setup: Setup, params: Params | None = None, *, progress=True, chunk_reco
     Raises :class:`jdem.SimulationDiverged` with the state at the start of the
     chunk that went wrong (and the history before it).
     """
+    if chunk_records is not None:
+        require_int("chunk_records", chunk_records, 1)
     parts, k0 = [], 0
     if resume is not None:
         setup, params_saved, parts, k0 = load_checkpoint(resume, setup)
