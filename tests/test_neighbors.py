@@ -255,3 +255,69 @@ def test_the_highest_numbered_pair_keeps_its_history():
     for pair, shear in before.items():
         assert np.all(shear != 0.0)
         np.testing.assert_array_equal(after[pair], shear)
+
+
+def test_growing_radii_alone_trigger_a_rebuild():
+    """Radii that grow (compaction by expansion) close gaps as motion does: a list
+    is stale once twice the growth reaches the skin, with no particle moved."""
+    pos = np.array([[0.0, 0.0], [2.5e-3, 0.0]])
+    p = jdem.make_particles(pos, np.full(2, 1e-3))
+    state, cfg = jdem.make_state(p, skin=4e-4)
+    c = state.contacts
+    assert not bool(neighbors.needs_rebuild(c, p, cfg))
+    assert not bool(neighbors.needs_rebuild(c, p._replace(radius=p.radius + 1.9e-4), cfg))
+    assert bool(neighbors.needs_rebuild(c, p._replace(radius=p.radius + 2.1e-4), cfg))
+    # shrinking never makes a list stale, and growth adds to motion
+    assert not bool(neighbors.needs_rebuild(c, p._replace(radius=p.radius - 5e-4), cfg))
+    moved = p._replace(pos=p.pos.at[0, 0].add(1.2e-4), radius=p.radius + 1.2e-4)
+    assert bool(neighbors.needs_rebuild(c, moved, cfg))
+
+
+def test_a_list_that_fits_exactly_is_not_overflowed_and_keeps_its_cells():
+    """A list whose every row is used, and cells filled to exactly
+    ``max_per_cell``, did fit: no overflow is flagged, and ``allocate`` does not
+    grow the cells (a larger ``Config`` would recompile every program)."""
+    rng = np.random.default_rng(3)
+    pos = rng.uniform(0, 0.01, size=(80, 2))
+    rad = np.full(80, 5e-4)
+    p = jdem.make_particles(pos, rad)
+    cfg = jdem.make_config(p, skin=1e-4)
+    want = _brute_pairs(pos, rad, 1e-4)
+    c = neighbors.build(neighbors.empty(p, len(want)), p, cfg)
+    assert _pairs(c) == want and bool(np.all(np.asarray(c.valid)))
+    assert not bool(neighbors.overflowed(c, cfg))
+    full = cfg.replace(max_per_cell=int(c.max_in_cell))
+    assert not bool(neighbors.overflowed(c, full))
+    _, again = neighbors.allocate(p, full)
+    assert again.max_per_cell == int(c.max_in_cell)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_grid_covers_particles_and_walls_with_a_margin(dim):
+    """``grid_for``: cells of one diameter plus skin, the box of the particles
+    widened to ``extra_bounds`` (walls) and by ``margin`` on every side."""
+    rng = np.random.default_rng(4)
+    pos = rng.uniform(0.2, 0.8, size=(30, dim))
+    p = jdem.make_particles(pos, np.full(30, 0.01))
+    walls_lo, walls_hi = np.full(dim, -0.3), np.full(dim, 1.4)
+    for margin in (0.05, 0.5):
+        origin, shape, cell = neighbors.grid_for(p, skin=0.002, margin=margin,
+                                                 extra_bounds=(walls_lo, walls_hi))
+        assert cell == pytest.approx(0.022)
+        top = np.asarray(origin) + np.asarray(shape) * cell
+        np.testing.assert_allclose(origin, walls_lo - margin)
+        assert np.all(top >= walls_hi + margin) and np.all(top < walls_hi + margin + cell)
+    origin, shape, cell = neighbors.grid_for(p, skin=0.002, margin=0.0)
+    top = np.asarray(origin) + np.asarray(shape) * cell
+    np.testing.assert_allclose(origin, pos.min(axis=0))
+    assert np.all(top >= pos.max(axis=0)) and np.all(top < pos.max(axis=0) + cell)
+
+
+def test_dense_capacity_is_three_rows_per_disc_and_seven_per_sphere():
+    """128 particles: 384 rows in 2D and 896 in 3D (both whole multiples of the
+    row alignment, so nothing is rounded); invalid rows do not count."""
+    for dim, per in ((2, 3), (3, 7)):
+        pos = np.zeros((130, dim)) + np.arange(130)[:, None]
+        p = jdem.make_particles(pos, np.full(130, 0.1))
+        p = p._replace(valid=p.valid.at[-2:].set(False))
+        assert neighbors.dense_capacity(p, dim) == 128 * per
