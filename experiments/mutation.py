@@ -19,10 +19,14 @@ one process).  A mutant is *killed* when a test fails (or the run errors or
 times out), *survived* otherwise.  The original sources are never touched.
 
 Each outcome is appended to ``experiments/results/mutation/results.jsonl`` as
-soon as it is known, keyed by the module's source hash: a run that is
-interrupted, or a later run with more sites, continues where the last stopped
-(sites already run on the same source are skipped; a changed module starts
-afresh).  ``equivalent.json`` in the same folder names the mutants judged
+soon as it is known, keyed by the module's code hash (:func:`code_hash`: the
+syntax tree without docstrings, line and column positions included, so an edit
+of comments or docstrings that moves no code keeps the outcomes and any other
+edit starts the module afresh): a run that is interrupted, or a later run with
+more sites, continues where the last stopped (sites already run on the same
+code are skipped).  Outcomes recorded before the code hash was kept carry only
+the hash of the raw source; that is mapped to a code hash through the module's
+versions in git history.  ``equivalent.json`` in the same folder names the mutants judged
 equivalent (key ``module | mutation | col C | code line``, value the reason); they are
 left out of the score.  ``mutation.md`` (score per module, each mutant with its
 line and outcome) is written from both after every mutant.  Slow (20-60 s per
@@ -169,6 +173,47 @@ def run_tests(work: pathlib.Path, files, timeout) -> tuple[str, float]:
     return outcome, time.time() - t0
 
 
+def source_hash(src: str) -> str:
+    """Hash of the raw source text (the key of outcomes recorded before
+    :func:`code_hash`)."""
+    return hashlib.sha256(src.encode()).hexdigest()[:16]
+
+
+def code_hash(src: str) -> str:
+    """Hash of what the module executes: its syntax tree with every docstring
+    removed, node positions included (a mutant's line and column stay valid)."""
+    tree = ast.parse(src)
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+                and body and isinstance(body[0], ast.Expr)
+                and isinstance(body[0].value, ast.Constant) and isinstance(body[0].value.value, str)):
+            node.body = body[1:]
+    return hashlib.sha256(ast.dump(tree, include_attributes=True).encode()).hexdigest()[:16]
+
+
+_HISTORY: dict = {}
+
+
+def code_hash_of_record(r) -> str | None:
+    """The code hash an outcome was recorded on: stored, or (older records) found
+    from the raw-source hash among the module's versions in git history."""
+    if "code_sha" in r:
+        return r["code_sha"]
+    mod = r["module"]
+    if mod not in _HISTORY:
+        _HISTORY[mod] = {}
+        path = f"jdem/{mod}.py"
+        log = subprocess.run(["git", "-C", str(ROOT), "log", "--format=%H", "--", path],
+                             capture_output=True, text=True).stdout.split()
+        for commit in log:
+            shown = subprocess.run(["git", "-C", str(ROOT), "show", f"{commit}:{path}"],
+                                   capture_output=True, text=True)
+            if shown.returncode == 0:
+                _HISTORY[mod][source_hash(shown.stdout)] = code_hash(shown.stdout)
+    return _HISTORY[mod].get(r["source_sha"])
+
+
 def equivalence_key(r) -> str:
     return f"{r['module']} | {r['mutation']} | col {r['col']} | {r['code']}"
 
@@ -184,7 +229,8 @@ def load_results(out: pathlib.Path) -> list:
     for x in path.read_text().splitlines():
         if x.strip():
             r = json.loads(x)
-            latest[(r["module"], r["line"], r["col"], r["mutation"], r["source_sha"])] = r
+            latest[(r["module"], r["line"], r["col"], r["mutation"],
+                    code_hash_of_record(r) or r["source_sha"])] = r
     return list(latest.values())
 
 
@@ -192,12 +238,12 @@ def write_report(out: pathlib.Path, hashes: dict, n_sites: dict, cmd: str):
     """mutation.md from results.jsonl (current sources only) and equivalent.json."""
     eq_path = out / "equivalent.json"
     equivalent = json.loads(eq_path.read_text()) if eq_path.exists() else {}
-    results = [r for r in load_results(out) if hashes.get(r["module"]) == r["source_sha"]]
+    results = [r for r in load_results(out) if hashes.get(r["module"]) == code_hash_of_record(r)]
     md = ["# Mutation testing of the physics modules", "",
           f"Last run {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, `{cmd}`, "
           f"2-core CPU. A mutant is killed when the module's unit tests (`pytest -x`, not "
           f"slow) fail; mutants named in `equivalent.json` are left out of the score. "
-          f"Outcomes accumulate in `results.jsonl` across runs of the same sources.", "",
+          f"Outcomes accumulate in `results.jsonl` across runs on the same code (docstrings and comments aside).", "",
           "| module | sites | run | killed | equivalent | survived | score of non-equivalent |",
           "|---|---|---|---|---|---|---|"]
     for mod in sorted({r["module"] for r in results}):
@@ -237,7 +283,7 @@ def main(argv=None):
     plan, hashes, n_sites = {}, {}, {}
     for mod in TESTS:             # every module's current source, for the report
         src = (ROOT / "jdem" / f"{mod}.py").read_text()
-        hashes[mod] = hashlib.sha256(src.encode()).hexdigest()[:16]
+        hashes[mod] = code_hash(src)
         all_sites = sites(src)
         n_sites[mod] = len(all_sites)
         if mod in a.modules:
@@ -257,7 +303,7 @@ def main(argv=None):
     eq_path = a.out / "equivalent.json"
     equivalent = json.loads(eq_path.read_text()) if eq_path.exists() else {}
     done = {(r["module"], r["line"], r["col"], r["mutation"]) for r in load_results(a.out)
-            if hashes.get(r["module"]) == r.get("source_sha")
+            if hashes.get(r["module"]) == code_hash_of_record(r)
             and not (a.rerun_survivors and r["outcome"] == "survived"
                      and equivalence_key(r) not in equivalent)}
     _worktree(a.work)
@@ -278,7 +324,8 @@ def main(argv=None):
                 target.write_text(original)
                 line = original.splitlines()[site[1] - 1].strip()
                 r = dict(module=mod, line=site[1], col=site[2], mutation=site[3], code=line,
-                         outcome=outcome, seconds=round(t, 1), source_sha=hashes[mod])
+                         outcome=outcome, seconds=round(t, 1), source_sha=source_hash(original),
+                         code_sha=hashes[mod])
                 with open(a.out / "results.jsonl", "a") as f:
                     f.write(json.dumps(r) + "\n")
                 write_report(a.out, hashes, n_sites, cmd)
