@@ -25,6 +25,7 @@ from __future__ import annotations
 import functools
 import itertools
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -35,10 +36,33 @@ from jdem.state import Config, Contacts, Particles, aligned_rows
 
 
 # ----------------------------------------------------------------------------- grid
-def _cell_coords(pos, config: Config):
-    origin = jnp.asarray(config.grid_origin, pos.dtype)
+class SearchGrid(NamedTuple):
+    """The lengths of the search grid as arrays: ``origin`` (d,) [m], ``cell_size``
+    [m] and ``skin`` [m] (see :class:`jdem.state.Config`).  :func:`build` takes
+    them as arguments rather than as part of its static ``Config``, so that one
+    compiled build serves every grid of the same shape."""
+    origin: jax.Array
+    cell_size: jax.Array
+    skin: jax.Array
+
+
+def search_grid(config: Config, dtype) -> SearchGrid:
+    """The :class:`SearchGrid` of ``config`` in the positions' ``dtype``."""
+    return SearchGrid(origin=jnp.asarray(config.grid_origin, dtype),
+                      cell_size=jnp.asarray(config.cell_size, dtype),
+                      skin=jnp.asarray(config.skin, dtype))
+
+
+def _shape_key(config: Config) -> Config:
+    """The fields a build's program depends on (dimension, grid shape, cell
+    capacity); the others take fixed values, so that they do not recompile it."""
+    return Config(dim=config.dim, grid_origin=(0.0,) * config.dim,
+                  grid_shape=tuple(config.grid_shape), max_per_cell=config.max_per_cell)
+
+
+def _cell_coords(pos, config: Config, grid: SearchGrid):
     shape = jnp.asarray(config.grid_shape, jnp.int32)
-    c = jnp.floor((pos - origin) / config.cell_size).astype(jnp.int32)
+    c = jnp.floor((pos - grid.origin) / grid.cell_size).astype(jnp.int32)
     # clamping keeps neighbouring particles in neighbouring cells: still exact
     return jnp.clip(c, 0, shape - 1)
 
@@ -65,14 +89,14 @@ def _sort_pairs(major, minor, major_max, n_minor):
     return jax.lax.sort((major, minor), num_keys=2)
 
 
-def cell_table(particles: Particles, config: Config):
+def cell_table(particles: Particles, config: Config, grid: SearchGrid):
     """Particles sorted into cells: table (n_cells + 1, K) of particle ids, N = empty.
 
     Returns the table, each particle's cell coordinates and the fullest cell's count.
     """
     n = particles.pos.shape[0]
     k = config.max_per_cell
-    coords = _cell_coords(particles.pos, config)
+    coords = _cell_coords(particles.pos, config, grid)
     cell = jnp.where(particles.valid, _ravel(coords, config), config.n_cells)
     sorted_cell, order = _sort_pairs(cell, jnp.arange(n, dtype=jnp.int32), config.n_cells, n)
     first = jnp.searchsorted(sorted_cell, sorted_cell, side="left")
@@ -85,7 +109,7 @@ def cell_table(particles: Particles, config: Config):
     return table, coords, max_in_cell
 
 
-def candidates(particles: Particles, config: Config):
+def candidates(particles: Particles, config: Config, grid: SearchGrid):
     """All (i, j) with j in a cell adjacent to i's: arrays (N, M) with M = 3**d * K.
 
     Row i lists the table rows of i's 3**d neighbour cells in stencil order (N marks
@@ -96,7 +120,7 @@ def candidates(particles: Particles, config: Config):
     per-particle gather is kept, whose size does not grow with the empty cells.
     """
     n = particles.pos.shape[0]
-    table, coords, max_in_cell = cell_table(particles, config)
+    table, coords, max_in_cell = cell_table(particles, config, grid)
     if config.n_cells <= n:
         shape = tuple(config.grid_shape)
         grid = table[:config.n_cells].reshape(shape + (config.max_per_cell,))
@@ -226,10 +250,10 @@ def carry_history(contacts: Contacts, new_i, new_j, valid, n):
 
 
 # ----------------------------------------------------------------------------- build
-def candidate_mask(particles: Particles, cand, config: Config, bonds=None):
+def candidate_mask(particles: Particles, cand, config: Config, grid: SearchGrid, bonds=None):
     """(N, M) bool: the candidates ``cand`` (N, M) of :func:`candidates` that
     :func:`build` lists: real partners j > i of valid particles whose gap is
-    below ``config.skin``, and not bonded to i (bonded pairs interact through
+    below ``grid.skin``, and not bonded to i (bonded pairs interact through
     their bond only)."""
     n = particles.pos.shape[0]
     ii = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32)[:, None], cand.shape)
@@ -240,24 +264,30 @@ def candidate_mask(particles: Particles, cand, config: Config, bonds=None):
     for axis in range(config.dim):
         x = particles.pos[:, axis]
         gap2 = gap2 + (x[partner] - x[:, None]) ** 2
-    reach = particles.radius[partner] + particles.radius[:, None] + config.skin
+    reach = particles.radius[partner] + particles.radius[:, None] + grid.skin
     mask = real & (gap2 < reach * reach)
     if bonds is not None and bonds.i.shape[0] > 0:
         mask = mask & ~_bonded(bonds, cand)
     return mask
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
 def build(contacts: Contacts, particles: Particles, config: Config, bonds=None) -> Contacts:
     """Rebuild the pair list from scratch at the current positions (jit-able).
 
     Keeps the tangential history of pairs that were already listed.  Records
     the space it needed so that the host can detect overflow.
     """
+    return _build(contacts, particles, _shape_key(config),
+                  search_grid(config, particles.pos.dtype), bonds)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _build(contacts: Contacts, particles: Particles, config: Config, grid: SearchGrid,
+           bonds=None) -> Contacts:
     n = particles.pos.shape[0]
     cap = contacts.i.shape[0]
-    cand, max_in_cell = candidates(particles, config)
-    mask = candidate_mask(particles, cand, config, bonds)
+    cand, max_in_cell = candidates(particles, config, grid)
+    mask = candidate_mask(particles, cand, config, grid, bonds)
     new_i, new_j, valid, count = _compact(mask, cand, cap, config.max_per_cell)
     shear = carry_history(contacts, new_i, new_j, valid, n)
     return Contacts(
@@ -410,15 +440,19 @@ def reallocate(contacts: Contacts, particles: Particles, config: Config, bonds=N
     cap = max(old_cap, room_for(need_pairs) if capacity is None else int(capacity))
     while True:
         config = config.replace(max_per_cell=max(config.max_per_cell, need_cell + 2))
-
-        def regrow(c, p, b):
-            return build(_resize(c, cap), p, config, b)
-
-        fn = jax.vmap(regrow) if contacts.i.ndim == 2 else regrow
-        grown = jax.jit(fn)(contacts, particles, bonds)
+        grown = _regrown(contacts, particles, bonds, config, cap)
         if not bool(overflowed(grown, config)):
             return grown, config
         # the rebuild saw more than the failed build could count: size from it
         need_pairs = int(np.max(np.asarray(grown.n_pairs)))
         need_cell = int(np.max(np.asarray(grown.max_in_cell)))
         cap = max(cap, room_for(need_pairs))
+
+
+@functools.partial(jax.jit, static_argnames=("config", "cap"))
+def _regrown(contacts: Contacts, particles: Particles, bonds, config: Config, cap: int):
+    """``contacts`` copied into ``cap`` rows and rebuilt (each member of a batch)."""
+    def regrow(c, p, b):
+        return build(_resize(c, cap), p, config, b)
+
+    return (jax.vmap(regrow) if contacts.i.ndim == 2 else regrow)(contacts, particles, bonds)

@@ -301,6 +301,14 @@ class Config:
     def replace(self, **changes) -> "Config":
         return dataclasses.replace(self, **changes)
 
+    def without_search_grid(self) -> "Config":
+        """This configuration with the neighbour-search fields (skin, grid, cell
+        capacity) at fixed values: the static key of a jitted function that
+        applies the laws without searching for neighbours, so that it compiles
+        once for every grid."""
+        return self.replace(skin=1.0, cell_size=1.0, grid_origin=(0.0,) * self.dim,
+                            grid_shape=(1,) * self.dim, max_per_cell=1)
+
 
 def make_params(dim: int = 2, n_materials: int = 1, *, dt: float = 1e-6,
                 gravity=None, kn=1e8, ks=None, friction=0.5, youngs=1e9, poisson=0.25,

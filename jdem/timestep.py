@@ -134,7 +134,7 @@ def critical_timestep(state: State, params: Params, config: Config):
     2 / ``viscous_damping`` (infinite without it); use
     :func:`nominal_critical_timestep` for the contacts to come.
     """
-    return _critical_and_touching(state, params, config)[0]
+    return _critical_and_touching(state, params, config.without_search_grid())[0]
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -186,7 +186,7 @@ def check_timestep(state: State, params: Params, config: Config):
     material indices are checked first (:func:`jdem.validate.check_materials`)."""
     check_materials(state, params)
     dt = float(params.dt)
-    crit, touching = _critical_and_touching(state, params, config)
+    crit, touching = _critical_and_touching(state, params, config.without_search_grid())
     crit = float(crit)
     if not bool(touching):      # the contacts to come
         crit = min(crit, float(nominal_critical_timestep(state.particles, params, config)))

@@ -321,3 +321,24 @@ def test_dense_capacity_is_three_rows_per_disc_and_seven_per_sphere():
         p = jdem.make_particles(pos, np.full(130, 0.1))
         p = p._replace(valid=p.valid.at[-2:].set(False))
         assert neighbors.dense_capacity(p, dim) == 128 * per
+
+
+def test_grids_of_one_shape_share_a_build_and_each_finds_its_own_pairs():
+    """The grid's origin, cell size and skin are arguments of the compiled build,
+    not constants in it: builds on two grids of the same shape (the second one
+    shifted, with larger cells and a larger skin) each find the brute-force pairs
+    of their own skin, and the second reuses the first's program."""
+    rng = np.random.default_rng(11)
+    pos = rng.uniform(0, 0.01, size=(120, 2))
+    rad = rng.uniform(3e-4, 5e-4, size=120)
+    p = jdem.make_particles(pos, rad)
+    small = jdem.make_config(p, skin=1e-4)
+    large = small.replace(skin=4e-4, cell_size=small.cell_size + 3e-4,
+                          grid_origin=tuple(o - 2e-3 for o in small.grid_origin))
+    compiled = neighbors._build._cache_size()
+    for cfg, skin in ((small, 1e-4), (large, 4e-4)):
+        c = neighbors.build(neighbors.empty(p, 600), p, cfg)
+        assert not bool(neighbors.overflowed(c, cfg))
+        assert _pairs(c) == _brute_pairs(pos, rad, skin)
+    assert neighbors._build._cache_size() == compiled + 1
+    assert _brute_pairs(pos, rad, 4e-4) != _brute_pairs(pos, rad, 1e-4)  # the skins matter

@@ -155,18 +155,19 @@ def profile_case(state, params, config, repeats, log=print, detail=True, loop_st
         return rec_loop(name, body, init, k, iters, r_build, desc)
 
     try:
-        cand, _ = jax.jit(lambda p: neighbors.candidates(p, config))(p)
+        grid = neighbors.search_grid(config, p.pos.dtype)
+        cand, _ = jax.jit(lambda p: neighbors.candidates(p, config, grid))(p)
 
         def cand_mask(pp, cand):
-            return neighbors.candidate_mask(pp, cand, config)
+            return neighbors.candidate_mask(pp, cand, config, grid)
 
         mask = block(jax.jit(cand_mask)(p, cand))
         out["build_candidates_shape"] = list(cand.shape)
         out["build_candidates_filled"] = float(jnp.mean(cand < n))
         out["build_candidates_kept"] = int(jnp.sum(mask))
-        rec_part("loop.build.cell_table", lambda pp, k: neighbors.cell_table(pp, config), 0,
+        rec_part("loop.build.cell_table", lambda pp, k: neighbors.cell_table(pp, config, grid), 0,
                  "sort particles into cells (one int32 key), fill the (cells, K) table")
-        rec_part("loop.build.candidates", lambda pp, k: neighbors.candidates(pp, config), 0,
+        rec_part("loop.build.candidates", lambda pp, k: neighbors.candidates(pp, config, grid), 0,
                  "cell table + (N, 3^d K) candidate gather (includes cell_table)")
         rec_part("loop.build.mask", lambda pp, k: cand_mask(pp, k), cand,
                  "distance test of every candidate (gather of candidate positions and radii)")

@@ -377,7 +377,7 @@ def activate(state, params: Params, config, cond: Conditions, *, release=(True, 
 
     Returns ``(state, conditions)``.
     """
-    force = _unbalanced_force(state, params, config)
+    force = _unbalanced_force(state, params, config.without_search_grid())
     free = jnp.asarray(np.asarray(release, bool))
     p = state.particles
     fixed = p.fixed_vel
