@@ -28,6 +28,10 @@ from jdem.lab import energy
 from jdem.materials import rock_params
 from jdem.specimen import flatten_disc, generate
 
+#: restart and bookkeeping checks load faster than quasi-statically on purpose
+#: (seconds, not minutes); the certificate's warning is expected there
+LOADED_FAST = pytest.mark.filterwarnings("ignore:ucs.*not quasi-static:UserWarning")
+
 SIZE = (0.007, 0.014)            # [m] width x height
 RADII = (0.2e-3, 0.35e-3)        # [m]
 SEED = 2
@@ -179,6 +183,7 @@ def test_biaxial_servo_holds_the_confining_stress(rect):
 
 
 # ----------------------------------------------------------------------------- restart
+@LOADED_FAST
 def test_interrupted_run_resumes_bit_for_bit(rect, tmp_path):
     """A run stopped after its first chunk (the checkpoint it wrote then) and
     resumed gives the uninterrupted history and final state, bit for bit."""
@@ -298,6 +303,7 @@ kappa = 0.003
     return path
 
 
+@LOADED_FAST
 def test_cli_ucs_writes_png_and_hdf5(tmp_path):
     """``jdem ucs --animate --paraview``: the PNG and HDF5, a GIF of the failure
     developing and a ParaView series, which reopen with Pillow and meshio and

@@ -33,6 +33,10 @@ from jdem import sweep as sw
 from jdem.specimen import generate
 from jdem.state import Bonds, Particles
 
+#: restart and bookkeeping checks load faster than quasi-statically on purpose
+#: (seconds, not minutes); the certificate's warning is expected there
+LOADED_FAST = pytest.mark.filterwarnings("ignore:ucs.*not quasi-static:UserWarning")
+
 SIZE = (0.005, 0.010)          # [m] width x height
 RADII = (0.2e-3, 0.35e-3)      # [m]
 SEED = 2
@@ -371,6 +375,7 @@ PROCESS_SCRIPT = textwrap.dedent("""
 """)
 
 
+@LOADED_FAST
 def test_sweep_over_two_processes_matches_one(specimen, tmp_path, one_per_batch):
     """Two processes under jax.distributed (one CPU device each) share the four
     batches of one member, each writes its part, and merge_sweeps gives the
@@ -408,6 +413,7 @@ def test_sweep_over_two_processes_matches_one(specimen, tmp_path, one_per_batch)
 SHORT = dict(RUN, max_strain=6e-4)
 
 
+@LOADED_FAST
 def test_an_interrupted_sweep_is_saved_and_resumes_to_the_uninterrupted_table(
         specimen, base, samples, tmp_path, monkeypatch):
     """Two batches of two; Ctrl-C during the second leaves the first in the file
@@ -441,6 +447,7 @@ def test_an_interrupted_sweep_is_saved_and_resumes_to_the_uninterrupted_table(
                  resume=True, **kw)
 
 
+@LOADED_FAST
 def test_a_sample_whose_step_is_unstable_is_set_aside_and_the_others_finish(
         specimen, base, table):
     """With the time step of the 2 x 2 sweep, a sample 100 x stiffer is above its
