@@ -21,6 +21,12 @@ def _pairs(c, with_shear=False):
     return set(zip(i[v].tolist(), j[v].tolist()))
 
 
+def _tagged(c):
+    """``c`` with a history unique to each listed row and component (nonzero)."""
+    tag = jnp.arange(c.shear.size, dtype=c.shear.dtype).reshape(c.shear.shape) + 1.0
+    return c._replace(shear=jnp.where(c.valid[:, None], tag, 0.0))
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 def test_cell_list_finds_exactly_the_brute_force_pairs(dim):
     rng = np.random.default_rng(3)
@@ -81,9 +87,7 @@ def test_history_survives_rebuild_and_bonded_pairs_are_excluded():
     pos = np.array([[0.0, 0.0], [0.0019, 0.0], [0.0038, 0.0], [0.0, 0.0019]])
     p = jdem.make_particles(pos, np.full(4, 1e-3))
     state, cfg = jdem.make_state(p, skin=2e-4)
-    c = state.contacts
-    shear = jnp.arange(c.shear.size, dtype=c.shear.dtype).reshape(c.shear.shape) + 1.0
-    c = c._replace(shear=jnp.where(c.valid[:, None], shear, 0.0))
+    c = _tagged(state.contacts)
     before = _pairs(c, with_shear=True)
     rebuilt = neighbors.build(c, p, cfg)
     after = _pairs(rebuilt, with_shear=True)
@@ -185,8 +189,7 @@ def test_reallocate_after_a_cell_overflow_lists_every_pair_and_keeps_history():
     assert bool(neighbors.overflowed(c, cfg)) and int(c.max_in_cell) > 3
     assert neighbors.room_for(int(c.n_pairs)) < len(_brute_pairs(pos, rad, 1e-4))
     # mark the held pairs' history with a value unique to each row
-    tag = jnp.stack([jnp.arange(10.0) + 1.0, -(jnp.arange(10.0) + 1.0)], axis=1)
-    c = c._replace(shear=jnp.where(c.valid[:, None], tag, 0.0))
+    c = _tagged(c)
     before = _pairs(c, with_shear=True)
     out, cfg2 = neighbors.reallocate(c, p, cfg)
     assert not bool(neighbors.overflowed(out, cfg2))
@@ -247,8 +250,7 @@ def test_the_highest_numbered_pair_keeps_its_history():
     state, cfg = jdem.make_state(p, skin=2e-4)
     c = state.contacts
     assert _pairs(c) == {(k, k + 1) for k in range(n - 1)}
-    tag = jnp.arange(c.shear.size, dtype=c.shear.dtype).reshape(c.shear.shape) + 1.0
-    c = c._replace(shear=jnp.where(c.valid[:, None], tag, 0.0))
+    c = _tagged(c)
     before = _pairs(c, with_shear=True)
     after = _pairs(neighbors.build(c, p, cfg), with_shear=True)
     assert after.keys() == before.keys()
