@@ -238,7 +238,9 @@ def write_report(out: pathlib.Path, hashes: dict, n_sites: dict, cmd: str):
     """mutation.md from results.jsonl (current sources only) and equivalent.json."""
     eq_path = out / "equivalent.json"
     equivalent = json.loads(eq_path.read_text()) if eq_path.exists() else {}
-    results = [r for r in load_results(out) if hashes.get(r["module"]) == code_hash_of_record(r)]
+    recorded = load_results(out)
+    results = [r for r in recorded if hashes.get(r["module"]) == code_hash_of_record(r)]
+    unmatched = sum(code_hash_of_record(r) is None for r in recorded)
     md = ["# Mutation testing of the physics modules", "",
           f"Last run {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, `{cmd}`, "
           f"2-core CPU. A mutant is killed when the module's unit tests (`pytest -x`, not "
@@ -246,14 +248,23 @@ def write_report(out: pathlib.Path, hashes: dict, n_sites: dict, cmd: str):
           f"Outcomes accumulate in `results.jsonl` across runs on the same code (docstrings and comments aside).", "",
           "| module | sites | run | killed | equivalent | survived | score of non-equivalent |",
           "|---|---|---|---|---|---|---|"]
-    for mod in sorted({r["module"] for r in results}):
+    for mod in sorted(n_sites):
         rows = [r for r in results if r["module"] == mod]
+        if not rows:
+            md.append(f"| {mod} | {n_sites[mod]} | 0 | | | | not run on the current code |")
+            continue
         k = sum(r["outcome"].startswith("killed") for r in rows)
         e = sum((not r["outcome"].startswith("killed")) and equivalence_key(r) in equivalent
                 for r in rows)
         sv = len(rows) - k - e
         md.append(f"| {mod} | {n_sites.get(mod, '?')} | {len(rows)} | {k} | {e} | {sv} | "
                   f"{100 * k / max(k + sv, 1):.0f} % |")
+    stale = len(recorded) - len(results) - unmatched
+    md += ["", f"{stale} recorded outcomes belong to earlier versions of the modules and are "
+           f"not counted."]
+    if unmatched:   # records older than the code hash, with no git history to map them
+        md += [f"{unmatched} recorded outcomes could not be matched to any version of their "
+               f"module (no git history here) and are not counted."]
     md += ["", "| module | line | mutation | outcome | note | code |", "|---|---|---|---|---|---|"]
     for r in results:
         note = equivalent.get(equivalence_key(r), "") if not r["outcome"].startswith("killed") \
@@ -292,7 +303,7 @@ def main(argv=None):
             plan[mod] = (len(all_sites), chosen)
     if a.report:
         print("\n".join(write_report(a.out, hashes, n_sites, "python experiments/mutation.py "
-                                     "--report")[:8 + len(TESTS)]))
+                                     "--report")[:11 + len(TESTS)]))
         return
     if a.list:
         for mod, (n, chosen) in plan.items():
@@ -335,7 +346,7 @@ def main(argv=None):
         subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(a.work)],
                        capture_output=True)
     md = write_report(a.out, hashes, n_sites, cmd)
-    print("\n".join(md[:8 + len(TESTS)]))
+    print("\n".join(md[:11 + len(TESTS)]))
 
 
 if __name__ == "__main__":
