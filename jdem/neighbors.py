@@ -123,8 +123,8 @@ def candidates(particles: Particles, config: Config, grid: SearchGrid):
     table, coords, max_in_cell = cell_table(particles, config, grid)
     if config.n_cells <= n:
         shape = tuple(config.grid_shape)
-        grid = table[:config.n_cells].reshape(shape + (config.max_per_cell,))
-        padded = jnp.pad(grid, [(1, 1)] * config.dim + [(0, 0)], constant_values=n)
+        by_cell = table[:config.n_cells].reshape(shape + (config.max_per_cell,))
+        padded = jnp.pad(by_cell, [(1, 1)] * config.dim + [(0, 0)], constant_values=n)
         shifted = [padded[tuple(slice(1 + int(o), 1 + int(o) + g) for o, g in zip(s, shape))]
                    for s in _stencil(config.dim)]
         neighbour_cells = jnp.stack(shifted, axis=config.dim).reshape(config.n_cells, -1)
