@@ -513,6 +513,21 @@ def test_nominal_step_equals_the_step_of_a_lattice_with_that_coordination():
         assert nominal == pytest.approx(crit, rel=1e-9)
 
 
+def test_the_step_limit_is_computed_without_the_search_grid():
+    """``critical_timestep`` is compiled for ``Config.without_search_grid()`` (one
+    program for every grid): the laws it evaluates read no search field, so the
+    limit equals the one computed with the full configuration, and a list built
+    on another grid gives the same limit."""
+    state, config = _hex_lattice(0.01, 0.004)
+    prm = jdem.make_params(dim=2, dt=1e-9, youngs=5e9, poisson=0.2, contact_damping=0.3)
+    crit = float(timestep.critical_timestep(state, prm, config))
+    assert crit == float(timestep._critical_and_touching(state, prm, config)[0])
+    other = config.replace(skin=3 * config.skin, cell_size=config.cell_size + 2 * config.skin,
+                           grid_origin=tuple(o - 0.01 for o in config.grid_origin))
+    rebuilt = state._replace(contacts=jdem.neighbors.build(state.contacts, state.particles, other))
+    assert float(timestep.critical_timestep(rebuilt, prm, other)) == crit
+
+
 def test_check_timestep_without_contacts_uses_the_nominal_step():
     """Before anything touches, the critical step is infinite; ``check_timestep``
     then refuses a step above the nominal one, and accepts one below it."""
