@@ -11,22 +11,11 @@ import pytest
 
 from jdem.bond import (bond_forces, bond_geometry, bond_stats, bond_strain_energy,
                        create_bonds, damage)
-from jdem.materials import SEED_PARAMS
 from jdem.state import ROW_ALIGN, Params, aligned_rows, empty_bonds, make_params, make_particles
+from seed_bond import C0, E, EPS_LIM, G, GAM_LIM, NU, PHI, T0, TANPHI
 
 R = 0.5
 L = 2 * R
-# the single-bond values of 002 §1.3 (E 10 GPa, nu 0.22, T0 = c0 = 3 MPa, phi 30 deg,
-# eps_lim 0.1 %, gamma_lim 0.3 %), defined once in jdem.materials
-E = SEED_PARAMS["bond_youngs"]
-NU = SEED_PARAMS["bond_poisson"]
-G = E / (2 * (1 + NU))
-T0 = SEED_PARAMS["bond_tensile"]
-C0 = SEED_PARAMS["bond_cohesion"]
-PHI = SEED_PARAMS["bond_friction_angle"]
-TANPHI = np.tan(PHI)
-EPS_LIM = SEED_PARAMS["bond_tensile_strain"]
-GAM_LIM = SEED_PARAMS["bond_shear_strain"]
 DT = 1e-3
 DSTRAIN = 5e-7          # strain increment per step in the tension / shear tests
 
