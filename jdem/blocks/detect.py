@@ -136,8 +136,12 @@ def _closest_vertices(verts_i, valid_i, verts_j, valid_j):
     dist2 = jnp.where(valid_i[:, None] & valid_j[None, :], jnp.sum(d * d, axis=-1), jnp.inf)
     k = jnp.argmin(dist2)
     a, b = k // verts_j.shape[0], k % verts_j.shape[0]
-    best = jnp.sqrt(dist2[a, b])
-    return best, d[a, b] / jnp.where(best > 0, best, 1.0), verts_i[a], verts_j[b]
+    # sqrt only where positive: two coincident vertices (a list's padding rows pair
+    # a block with itself) would otherwise give an infinite derivative, and a NaN
+    # gradient through the masked row
+    apart = dist2[a, b] > 0
+    best = jnp.where(apart, jnp.sqrt(jnp.where(apart, dist2[a, b], 1.0)), 0.0)
+    return best, d[a, b] / jnp.where(apart, best, 1.0), verts_i[a], verts_j[b]
 
 
 def pair_geometry_one(verts_i, valid_i, verts_j, valid_j, scale, corner_radius=0.0):
