@@ -432,6 +432,40 @@ def test_a_fit_without_progress_stops_as_stalled_not_converged():
     assert "stalled" in cb.report(res)
 
 
+def test_rejected_steps_stop_a_fit_only_without_real_progress_between_them():
+    """The stall bookkeeping of the solvers (solvers.Progress), on the README
+    demo's loss sequence: after the loss settles, ``MAX_REJECTED`` rejected
+    steps stop the fit; an accepted step that improves by less than
+    ``min_improvement`` does not start the count again (one did at iteration
+    17 of the demo, and the fit ran on to its budget), one that improves by
+    more does; ``patience`` counts only accepted steps without such an
+    improvement."""
+    from jdem.calibrate.solvers import MAX_REJECTED, Progress
+
+    def run(events, patience=3):
+        progress = Progress(np.inf, patience, 1e-3)
+        for k, (loss, accepted) in enumerate(events):
+            why = progress.update(loss, accepted)
+            if why is not None:
+                return k, why
+        return None, None
+
+    settle = [(0.25, True), (1.0e-2, True), (1.0e-4, True), (9.9e-5, True)]
+    k, why = run(settle + [(5.0, False)] * MAX_REJECTED)
+    assert k == len(settle) + MAX_REJECTED - 1 and "rejected" in why
+    # a 0.05 % improvement between the rejections does not reset their count ...
+    tiny = settle + [(5.0, False)] * 2 + [(9.895e-5, True)] + [(5.0, False)] * MAX_REJECTED
+    k, why = run(tiny, patience=5)
+    assert k == len(settle) + MAX_REJECTED and "rejected" in why
+    # ... a 1 % improvement does
+    real = settle + [(5.0, False)] * 2 + [(9.8e-5, True)] + [(5.0, False)] * (MAX_REJECTED - 1)
+    assert run(real) == (None, None)
+    # patience: accepted steps without a 0.1 % improvement, rejections not counted
+    flat = settle + [(9.899e-5, True), (5.0, False), (9.898e-5, True), (9.897e-5, True)]
+    k, why = run(flat)
+    assert k == len(flat) - 1 and "accepted iterations" in why
+
+
 @pytest.mark.slow
 def test_extrapolated_fit_recovers_the_strength_the_run_at_the_rate_misses():
     """Against the quasi-static estimate of the true curve (lab.quasi_static_history:

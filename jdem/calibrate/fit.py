@@ -13,7 +13,7 @@ from jdem import lab
 from jdem.calibrate.problem import make_terms, n_data, peakless, residual_problem
 from jdem.calibrate.result import (CalibrationResult, fitted_curves, load_calibration,
                                    merge_curves, partial_result, save_calibration, uncertainty)
-from jdem.calibrate.solvers import MAX_REJECTED, adam, jacobian_at, least_squares
+from jdem.calibrate.solvers import adam, jacobian_at, least_squares
 from jdem.calibrate.transform import bounds_for, to_internal, to_value
 from jdem.materials import check_names, material
 from jdem.targets import LossWeights
@@ -132,10 +132,10 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
 
     try:
         stepper = adam if method == "adam" else least_squares
-        stop, terms = stepper(terms, plist, u, names, lims, record, history,
-                                   steps - done, method=method, jacobian=jacobian, rtol=rtol,
-                                   atol=atol, learning_rate=learning_rate, tol=tol,
-                                   patience=patience, min_improvement=min_improvement)
+        stop, why_stopped, terms = stepper(
+            terms, plist, u, names, lims, record, history, steps - done, method=method,
+            jacobian=jacobian, rtol=rtol, atol=atol, learning_rate=learning_rate, tol=tol,
+            patience=patience, min_improvement=min_improvement)
     finally:
         if bar is not None:
             bar.close()
@@ -148,10 +148,7 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
     doubts = peakless(terms, [h for h, _ in curves1])
     if stop == "stalled":
         doubts = [f"the fit stalled after {len(history['loss'])} iterations (loss "
-                  f"{best[0]:.3g}): no improvement by {min_improvement:g} over {patience} "
-                  f"iterations" + ("" if method == "adam" else
-                                   f" or {MAX_REJECTED} rejected steps in a row") +
-                  "; the point may not be a minimum: try other start values"] + doubts
+                  f"{best[0]:.3g}): {why_stopped}"] + doubts
     for msg in doubts:
         warnings.warn(msg, stacklevel=2)
     curves = merge_curves(terms, curves0, curves1)
