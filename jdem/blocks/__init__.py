@@ -10,6 +10,7 @@ Citations ("000 §2.3") refer to the documents listed in REFERENCES.md.
 * :mod:`jdem.blocks.cycle`     the computing cycle, critical step, rollout, host run
 * :mod:`jdem.blocks.generate`  a region cut by joint sets; polygons from a text file
 * :mod:`jdem.blocks.cases`     the book's verification cases (incline, stack, wave)
+* :mod:`jdem.blocks.coupling`  discs and blocks in one model
 
 States and params save and reload with :func:`jdem.io.save_run` / :func:`jdem.io.load_run`.
 """
