@@ -38,6 +38,7 @@ import numpy as np
 from jdem import integrate, neighbors, precision, timestep
 from jdem.blocks import cycle, detect
 from jdem.blocks.geometry import world_vertices
+from jdem.kinematics import cross_r_f, cross_w_r
 from jdem.contact import (dashpot, harmonic_mix, normal_law, pair_friction, pair_property,
                           tangential_update)
 from jdem.simulate import SimulationDiverged
@@ -149,9 +150,8 @@ def disc_block_forces(blocks, particles, shear, params: Params, config: Config,
     # velocities of the two bodies at the contact point
     arm_d = point - particles.pos[None]                          # disc centre -> point
     arm_b = point - blocks.pos[:, None, :]                       # block centroid -> point
-    spin = lambda w, r: jnp.stack([-w * r[..., 1], w * r[..., 0]], axis=-1)
-    v_d = particles.vel[None] + spin(particles.angvel[None], arm_d)
-    v_b = blocks.vel[:, None, :] + spin(blocks.angvel[:, None], arm_b)
+    v_d = particles.vel[None] + cross_w_r(particles.angvel[None], arm_d)
+    v_b = blocks.vel[:, None, :] + cross_w_r(blocks.angvel[:, None], arm_b)
     v_rel = v_d - v_b
     approach = -jnp.sum(v_rel * normal, axis=-1)                 # > 0 closing
     v_t = v_rel + approach[..., None] * normal
@@ -164,11 +164,10 @@ def disc_block_forces(blocks, particles, shear, params: Params, config: Config,
     mu = pair_friction(params, config, mat_d, mat_b)
     shear = tangential_update(shear, normal, v_t, kt, fn, mu, params.dt, touching)
     force = fn_total[..., None] * normal + shear                 # on the disc
-    cross = lambda r, f: r[..., 0] * f[..., 1] - r[..., 1] * f[..., 0]
     disc_force = jnp.sum(force, axis=0)
-    disc_torque = jnp.sum(cross(arm_d, force), axis=0)
+    disc_torque = jnp.sum(cross_r_f(arm_d, force), axis=0)
     block_force = -jnp.sum(force, axis=1)
-    block_moment = -jnp.sum(cross(arm_b, force), axis=1)
+    block_moment = -jnp.sum(cross_r_f(arm_b, force), axis=1)
     info = DiscBlockContacts(overlap=overlap, normal=normal, point=point, touching=touching,
                              fn=fn_total, force=force)
     return shear, disc_force, disc_torque, block_force, block_moment, info
