@@ -28,7 +28,6 @@ one time step, which must respect both critical steps (:func:`check_timestep`).
 from __future__ import annotations
 
 import functools
-import time
 from typing import NamedTuple
 
 import jax
@@ -43,7 +42,7 @@ from jdem.contact import (dashpot, harmonic_mix, normal_law, pair_friction, pair
                           tangential_update)
 from jdem.simulate import SimulationDiverged
 from jdem.state import Config, Params, State
-from jdem.validate import InputError
+from jdem.validate import InputError, n_materials
 
 
 class Coupled(NamedTuple):
@@ -155,10 +154,10 @@ def disc_block_forces(blocks, particles, shear, params: Params, config: Config,
     v_rel = v_d - v_b
     approach = -jnp.sum(v_rel * normal, axis=-1)                 # > 0 closing
     v_t = v_rel + approach[..., None] * normal
-    # reduced mass; a fixed block counts as infinitely heavy
-    m_d = particles.mass[None, :]
-    m_b = jnp.where(blocks.fixed, jnp.inf, blocks.mass)[:, None]
-    m_eff = jnp.where(jnp.isinf(m_b), m_d, m_d * m_b / jnp.where(jnp.isinf(m_b), 1.0, m_d + m_b))
+    # reduced mass; a fixed block counts as infinitely heavy (m_eff = the disc's)
+    m_d, m_b = particles.mass[None, :], blocks.mass[:, None]
+    both = m_d + m_b                  # 0 only for padding rows, masked below
+    m_eff = jnp.where(blocks.fixed[:, None], m_d, m_d * m_b / jnp.where(both > 0, both, 1.0))
     fn_total = jnp.where(touching, jnp.maximum(fn + dashpot(kn, m_eff, approach, params), 0.0),
                          0.0)
     mu = pair_friction(params, config, mat_d, mat_b)
@@ -258,7 +257,7 @@ def check_timestep(model: Coupled, params: Params, block_params: cycle.BlockPara
     if dt != dt_b:
         raise InputError(f"params.dt = {dt!r} s and block_params.dt = {dt_b!r} s must be "
                          f"equal: the discs and the blocks advance together")
-    n_mat = int(np.shape(params.kn)[0]) if np.ndim(params.kn) else 1
+    n_mat = n_materials(params)
     if not 0 <= int(block_material) < n_mat:
         raise InputError(f"block_material = {block_material!r} is not a material of params "
                          f"(it has {n_mat})")
@@ -275,11 +274,13 @@ def check_timestep(model: Coupled, params: Params, block_params: cycle.BlockPara
 def run(model: Coupled, params: Params, block_params: cycle.BlockParams, config: Config,
         block_config: Config, n_steps: int, *, record_every: int = 100, observe=None,
         block_material=0, progress=True):
-    """Host loop over :func:`rollout` chunks: checks the time step first
-    (:func:`check_timestep`), grows a neighbour list and runs a chunk again
-    when it overflowed, shows progress, and raises
+    """Host loop over :func:`rollout` chunks (:func:`jdem.blocks.cycle.run_in_chunks`):
+    checks the time step first (:func:`check_timestep`), grows a neighbour list
+    and runs a chunk again when it overflowed, shows progress, and raises
     :class:`jdem.simulate.SimulationDiverged` with the last good model (the
-    start of the chunk) when a body's state turns non-finite.
+    start of the chunk) when a body's state turns non-finite, a disc fails the
+    particles' divergence guard, or a block moves half its list's skin in a step
+    (:func:`jdem.blocks.cycle.blocks_healthy`).
 
     Returns a :class:`CoupledRun`."""
     if int(record_every) < 1 or int(n_steps) < 1:
@@ -293,47 +294,36 @@ def run(model: Coupled, params: Params, block_params: cycle.BlockParams, config:
                          f"world")
     sharp = not bool(np.any(np.asarray(block_params.corner_radius) > 0))
     coulomb_only = not bool(np.any(np.asarray(block_params.cy_friction0) > 0))
-    n_records = -(-int(n_steps) // int(record_every))
-    per_chunk = max(1, min(n_records, 50))
-    records, bar = [], None
-    if progress:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=n_records * record_every, unit="step", desc="discs + blocks",
-                   leave=False)
-    t0 = time.time()
-    try:
-        done = 0
-        while done < n_records:
-            k = min(per_chunk, n_records - done)
-            new, hist = rollout(model, params, block_params, config, block_config, k,
-                                int(record_every), observe, int(block_material), sharp,
-                                coulomb_only)
-            if bool(neighbors.overflowed(new.discs.contacts, config)):
-                contacts, config = neighbors.reallocate(
-                    model.discs.contacts, model.discs.particles, config, model.discs.bonds)
-                model = model._replace(discs=model.discs._replace(contacts=contacts))
-                continue
-            if bool(neighbors.overflowed(new.blocks.contacts, block_config)):
-                contacts, block_config = neighbors.reallocate(
-                    model.blocks.contacts, detect.bounding_circles(model.blocks.blocks),
-                    block_config)
-                model = model._replace(blocks=model.blocks._replace(contacts=contacts))
-                continue
-            floats = [x for x in jax.tree_util.tree_leaves((new.discs.particles,
-                                                            new.blocks.blocks))
-                      if jnp.issubdtype(x.dtype, jnp.floating)]
-            if not all(bool(jnp.all(jnp.isfinite(x))) for x in floats) \
-                    or int(new.discs.first_bad_step) >= 0:
-                raise SimulationDiverged(int(model.discs.step), model,
-                                         cycle._stack(records))
-            model = new
-            records.append(jax.tree_util.tree_map(np.asarray, hist))
-            done += k
-            if bar is not None:
-                bar.update(k * record_every)
-    finally:
-        if bar is not None:
-            bar.close()
-    history = cycle._stack(records)
-    history["wall_time"] = time.time() - t0
+    dt = float(params.dt)
+
+    def chunk(k, records):
+        nonlocal model, config, block_config
+        new, hist = rollout(model, params, block_params, config, block_config, k,
+                            int(record_every), observe, int(block_material), sharp,
+                            coulomb_only)
+        if bool(neighbors.overflowed(new.discs.contacts, config)):
+            contacts, config = neighbors.reallocate(
+                model.discs.contacts, model.discs.particles, config, model.discs.bonds)
+            model = model._replace(discs=model.discs._replace(contacts=contacts))
+            return None
+        if bool(neighbors.overflowed(new.blocks.contacts, block_config)):
+            contacts, block_config = neighbors.reallocate(
+                model.blocks.contacts, detect.bounding_circles(model.blocks.blocks),
+                block_config)
+            model = model._replace(blocks=model.blocks._replace(contacts=contacts))
+            return None
+        discs_ok = all(bool(jnp.all(jnp.isfinite(x)))
+                       for x in jax.tree_util.tree_leaves(new.discs.particles)
+                       if jnp.issubdtype(x.dtype, jnp.floating))
+        if not discs_ok or int(new.discs.first_bad_step) >= 0 \
+                or not cycle.blocks_healthy(new.blocks.blocks, dt, block_config.skin):
+            raise SimulationDiverged(int(model.discs.step), model,
+                                     cycle.stack_records(records))
+        model = new
+        return hist
+
+    records, wall = cycle.run_in_chunks(chunk, n_steps, record_every, "discs + blocks",
+                                        progress)
+    history = cycle.stack_records(records)
+    history["wall_time"] = wall
     return CoupledRun(model, history, config, block_config)

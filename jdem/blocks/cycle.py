@@ -488,37 +488,65 @@ def run(state: BlockState, params: BlockParams, config: Config, n_steps: int, *,
                          f"step of these blocks (recommended_timestep gives a safe one)")
     sharp = not bool(np.any(np.asarray(params.corner_radius) > 0))
     coulomb_only = not bool(np.any(np.asarray(params.cy_friction0) > 0))
+
+    def chunk(k, records):
+        nonlocal state, config
+        new, hist = rollout(state, params, config, k, int(record_every), observe, sharp,
+                            coulomb_only)
+        if bool(neighbors.overflowed(new.contacts, config)):
+            contacts, config = neighbors.reallocate(
+                state.contacts, detect.bounding_circles(state.blocks), config)
+            state = state._replace(contacts=contacts)
+            return None
+        if not blocks_healthy(new.blocks, dt, config.skin):
+            raise SimulationDiverged(int(state.step), state, stack_records(records))
+        state = new
+        return hist
+
+    records, wall = run_in_chunks(chunk, n_steps, record_every, "blocks", progress)
+    history = stack_records(records)
+    history["wall_time"] = wall
+    return state, history
+
+
+def blocks_healthy(blocks: Blocks, dt, skin) -> bool:
+    """The host loop's guard (host function): every float of the blocks finite,
+    and no free block moving half the ``skin`` [m] in one step of ``dt`` [s]: it
+    would outrun the pair list and could pass through another block (tunnelling)
+    before the list sees the pair."""
+    b = blocks
+    free = np.asarray(b.valid & ~b.fixed)
+    reach = np.asarray(jnp.sqrt(jnp.sum(b.vel ** 2, axis=1)) + jnp.abs(b.angvel) *
+                       b.radius) * dt
+    too_fast = bool(np.any(free & ~(reach < 0.5 * skin)))
+    return not too_fast and all(bool(jnp.all(jnp.isfinite(x))) for x in
+                                jax.tree_util.tree_leaves(b)
+                                if jnp.issubdtype(x.dtype, jnp.floating))
+
+
+def run_in_chunks(chunk, n_steps, record_every, desc, progress):
+    """The host loop of :func:`run` and :func:`jdem.blocks.coupling.run`: records of
+    ``record_every`` steps, at most 50 per chunk, with a progress bar.
+
+    ``chunk(k, records)`` advances the caller's state by ``k`` records and returns
+    their history, or ``None`` when the chunk must run again (a list was grown);
+    ``records`` are the chunks' histories so far (for the error it may raise to
+    stop).  Returns ``(the chunks' histories as NumPy, wall time [s])``."""
     n_records = -(-int(n_steps) // int(record_every))
     per_chunk = max(1, min(n_records, 50))
     records = []
     bar = None
     if progress:
         from tqdm.auto import tqdm
-        bar = tqdm(total=n_records * record_every, unit="step", desc="blocks", leave=False)
+        bar = tqdm(total=n_records * record_every, unit="step", desc=desc, leave=False)
     t0 = time.time()
     try:
         done = 0
         while done < n_records:
             k = min(per_chunk, n_records - done)
-            new, hist = rollout(state, params, config, k, int(record_every), observe, sharp,
-                                coulomb_only)
-            if bool(neighbors.overflowed(new.contacts, config)):
-                contacts, config = neighbors.reallocate(
-                    state.contacts, detect.bounding_circles(state.blocks), config)
-                state = state._replace(contacts=contacts)
+            hist = chunk(k, records)
+            if hist is None:
                 continue
-            b = new.blocks
-            free = np.asarray(b.valid & ~b.fixed)
-            reach = np.asarray(jnp.sqrt(jnp.sum(b.vel ** 2, axis=1)) + jnp.abs(b.angvel) *
-                               b.radius) * dt
-            # a block that moves half the skin per step outruns the pair list: it can
-            # pass through another (tunnelling) before the list sees the pair
-            too_fast = bool(np.any(free & ~(reach < 0.5 * config.skin)))
-            if too_fast or not all(bool(jnp.all(jnp.isfinite(x))) for x in
-                                   jax.tree_util.tree_leaves(b)
-                                   if jnp.issubdtype(x.dtype, jnp.floating)):
-                raise SimulationDiverged(int(state.step), state, _stack(records))
-            state = new
             records.append(jax.tree_util.tree_map(np.asarray, hist))
             done += k
             if bar is not None:
@@ -526,12 +554,10 @@ def run(state: BlockState, params: BlockParams, config: Config, n_steps: int, *,
     finally:
         if bar is not None:
             bar.close()
-    history = _stack(records)
-    history["wall_time"] = time.time() - t0
-    return state, history
+    return records, time.time() - t0
 
 
-def _stack(records):
+def stack_records(records):
     """One history dict from the chunks' records (``{}`` if there are none)."""
     return {key: np.concatenate([r[key] for r in records]) for key in records[0]} \
         if records else {}
