@@ -17,8 +17,14 @@ packing's density and the bonding gap tolerance; the seed varied particle
 number, radius, arrangement, size spread and embedding), here for two radius
 spreads.  ``jdem.lab.energy.coordination_energy_ratio`` gives lambda for the
 whole block and ``lambda_core`` for the bulk only (bonds farther than 0.2 H
-from the platens): a random packing touches a flat platen at a few discs, and
-on a small block the seating of the others adds energy near the platens.
+from the faces).
+
+Every specimen is loaded four ways: with steel plates bonded to its faces (002
+Fig 7: ``jdem.specimen.add_plates``, two rows of discs, E = 200 GPa, bonded to
+every rock disc within a mean radius of the face) or between rigid platens (a
+random packing touches them at a few discs, and the seating of the others adds
+energy near the platens), each with the seed's circular bending section (002
+eq 5) and with the unit-thickness slab (``Config.bond_section``).
 
 Damping: the seed's local non-viscous damping, alpha = 0.8 (000 eq 3-19,
 ``jdem.lab.local(0.8)``, 002 §1.4), passed explicitly (the lab tests' default
@@ -53,7 +59,7 @@ from jdem import InputError  # noqa: E402
 from jdem import lab  # noqa: E402
 from jdem.lab.energy import coordination_energy_ratio  # noqa: E402
 from jdem.materials import rock_params  # noqa: E402
-from jdem.specimen import specimen_for_coordination  # noqa: E402
+from jdem.specimen import add_plates, specimen_for_coordination  # noqa: E402
 
 SEED_A, SEED_B = 60.5, -2.54
 FULL = dict(size=(0.10, 0.10), spreads=((0.6e-3, 0.85e-3), (0.45e-3, 1.0e-3)),
@@ -73,6 +79,12 @@ def power_fit(n_bar, lam):
     return float(np.exp(log_a)), float(b), r
 
 
+LOADINGS = ("plates", "rigid")
+SECTIONS = ("circular", "slab")
+MARKERS = {("plates", "circular"): "o", ("plates", "slab"): "s",
+           ("rigid", "circular"): "^", ("rigid", "slab"): "v"}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -85,7 +97,10 @@ def main(argv=None):
     out = pathlib.Path(args.out or ("results/coordination_study" + ("_small" if small else "")))
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
-    params = rock_params(2, E=30e9, nu=0.3, T0=1e9, c0=1e9, kappa=1e-2, local_damping=0.8)
+    params = {loading: rock_params(2, E=30e9, nu=0.3, T0=1e9, c0=1e9, kappa=1e-2,
+                                   local_damping=0.8,
+                                   plate_youngs=200e9 if loading == "plates" else None)
+              for loading in LOADINGS}
     print(f"  damping: {DAMPING}")
     rows, failed = [], []
     for s_i, (r_lo, r_hi) in enumerate(setup["spreads"]):
@@ -99,77 +114,98 @@ def main(argv=None):
                 print(f"  r in [{r_lo * 1e3:g}, {r_hi * 1e3:g}] mm, target N-bar {target}: "
                       f"not reached ({e})")
                 continue
-            res = coordination_energy_ratio(sp, params, stress=STRESS, damping=DAMPING)
-            row = dict(spread=s_i, r_min=r_lo, r_max=r_hi, target=target,
-                       n_bar=float(sp.coordination), n_particles=res["n_particles"],
-                       n_bonds=res["n_bonds"], porosity=float(sp.porosity),
-                       gap_tolerance=float(sp.info["gap_tolerance"]), lam=res["lam"],
-                       lam_core=res["lam_core"], L_p=res["L_p"], L_e=res["L_e"],
-                       E_macro=res["E_macro"], converged=bool(res["converged"]),
-                       steps=res["steps"], seconds=time.time() - t1)
-            rows.append(row)
-            print(f"  r in [{r_lo * 1e3:g}, {r_hi * 1e3:g}] mm: N-bar {row['n_bar']:.2f} "
-                  f"({row['n_particles']} discs, porosity {row['porosity']:.3f}): lambda "
-                  f"{row['lam']:.3f}, bulk {row['lam_core']:.3f}, E_macro "
-                  f"{row['E_macro'] / 1e9:.1f} GPa  ({row['seconds']:.0f} s)")
-    if len(rows) < 2:
+            specimens = {"plates": add_plates(sp), "rigid": sp}
+            for loading in LOADINGS:
+                for section in SECTIONS:
+                    t2 = time.time()
+                    res = coordination_energy_ratio(specimens[loading], params[loading],
+                                                    stress=STRESS, damping=DAMPING,
+                                                    bond_section=section)
+                    row = dict(spread=s_i, r_min=r_lo, r_max=r_hi, target=target,
+                               loading=loading, section=section,
+                               n_bar=float(sp.coordination), n_particles=res["n_particles"],
+                               n_bonds=res["n_bonds"], porosity=float(sp.porosity),
+                               gap_tolerance=float(sp.info["gap_tolerance"]), lam=res["lam"],
+                               lam_core=res["lam_core"], L_p=res["L_p"], L_e=res["L_e"],
+                               L_p_loading=res["L_p_loading"], E_macro=res["E_macro"],
+                               converged=bool(res["converged"]), steps=res["steps"],
+                               seconds=time.time() - t2)
+                    rows.append(row)
+                    print(f"  r in [{r_lo * 1e3:g}, {r_hi * 1e3:g}] mm: N-bar "
+                          f"{row['n_bar']:.2f} ({n_rock(sp)} discs, porosity "
+                          f"{row['porosity']:.3f}), {loading:6s} {section:8s}: lambda "
+                          f"{row['lam']:.3f}, bulk {row['lam_core']:.3f}  "
+                          f"({row['seconds']:.0f} s)", flush=True)
+            print(f"    specimen done in {time.time() - t1:.0f} s", flush=True)
+    if len({r["n_bar"] for r in rows}) < 2:
         print("too few specimens for a fit")
         return 1
-    n_bar = np.array([r["n_bar"] for r in rows])
-    lam = np.array([r["lam"] for r in rows])
-    lam_core = np.array([r["lam_core"] for r in rows])
-    fit = power_fit(n_bar, lam)
-    fit_core = power_fit(n_bar, lam_core)
+    fits = {}
+    for key in MARKERS:
+        sel = [r for r in rows if (r["loading"], r["section"]) == key]
+        n_bar = np.array([r["n_bar"] for r in sel])
+        fits[key] = dict(lam=power_fit(n_bar, [r["lam"] for r in sel]),
+                         core=power_fit(n_bar, [r["lam_core"] for r in sel]))
     n5 = lambda f: f[0] * 5.0 ** f[1]
     wall = time.time() - t0
 
-    fig, ax = plt.subplots(figsize=(6, 4.4))
-    xs = np.linspace(min(n_bar.min(), 3.5) * 0.97, max(n_bar.max(), 5.8) * 1.03, 100)
-    for s_i in range(len(setup["spreads"])):
-        sel = np.array([r["spread"] == s_i for r in rows])
-        if sel.any():
-            lo, hi = setup["spreads"][s_i]
-            ax.plot(n_bar[sel], lam[sel], "o", color=f"C{s_i}",
-                    label=f"λ, r ∈ [{lo * 1e3:g}, {hi * 1e3:g}] mm")
-            ax.plot(n_bar[sel], lam_core[sel], "^", mfc="none", color=f"C{s_i}",
-                    label="λ bulk (> 0.2 H from the platens)")
-    ax.plot(xs, fit[0] * xs ** fit[1], "k-", lw=1,
-            label=f"fit λ = {fit[0]:.3g} N̄^{fit[1]:.2f}")
-    ax.plot(xs, fit_core[0] * xs ** fit_core[1], "k:", lw=1,
-            label=f"fit bulk λ = {fit_core[0]:.3g} N̄^{fit_core[1]:.2f}")
-    ax.plot(xs, SEED_A * xs ** SEED_B, "r--", lw=1, label="002 eq 17: 60.5 N̄^-2.54")
-    ax.axhline(1.0, color="gray", lw=0.6)
-    ax.set_xlabel("mean coordination number N̄")
-    ax.set_ylabel("λ = L_p / L_e")
-    ax.set_title("strain-energy ratio vs coordination (002 Fig. 9)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    all_n = np.array([r["n_bar"] for r in rows])
+    xs = np.linspace(min(all_n.min(), 3.5) * 0.97, max(all_n.max(), 5.8) * 1.03, 100)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), sharey=True)
+    for ax, what, title in ((axes[0], "lam", "whole block"),
+                            (axes[1], "lam_core", "bulk (> 0.2 H from the faces)")):
+        for c, key in enumerate(MARKERS):
+            sel = [r for r in rows if (r["loading"], r["section"]) == key]
+            f = fits[key]["lam" if what == "lam" else "core"]
+            ax.plot([r["n_bar"] for r in sel], [r[what] for r in sel], MARKERS[key],
+                    color=f"C{c}", mfc="none" if key[1] == "slab" else None,
+                    label=f"{key[0]}, {key[1]}: {f[0]:.3g} N̄^{f[1]:.2f}")
+            ax.plot(xs, f[0] * xs ** f[1], "-", color=f"C{c}", lw=0.8)
+        ax.plot(xs, SEED_A * xs ** SEED_B, "k--", lw=1.2, label="002 eq 17: 60.5 N̄^-2.54")
+        ax.axhline(1.0, color="gray", lw=0.6)
+        ax.set_xlabel("mean coordination number N̄")
+        ax.set_title(f"λ = L_p / L_e, {title}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    axes[0].set_ylabel("λ")
+    fig.suptitle("strain-energy ratio vs coordination (002 Fig. 9), "
+                 f"{setup['size'][0] * 100:g} cm block, 1 MPa", fontsize=10)
     fig.tight_layout()
     fig.savefig(out / "lambda_vs_coordination.png", dpi=130)
     plt.close(fig)
 
+    fit_table = {f"{k[0]}_{k[1]}": dict(a=v["lam"][0], b=v["lam"][1], r=v["lam"][2],
+                                        lam_at_5=n5(v["lam"]), core_a=v["core"][0],
+                                        core_b=v["core"][1], core_lam_at_5=n5(v["core"]))
+                 for k, v in fits.items()}
     summary = dict(small=small, size=list(setup["size"]), stress=STRESS,
-                   damping=str(DAMPING), rows=rows,
-                   failed=failed, fit=dict(a=fit[0], b=fit[1], r=fit[2], lam_at_5=n5(fit)),
-                   fit_core=dict(a=fit_core[0], b=fit_core[1], r=fit_core[2],
-                                 lam_at_5=n5(fit_core)),
+                   damping=str(DAMPING), rows=rows, failed=failed, fits=fit_table,
                    seed_fit=dict(a=SEED_A, b=SEED_B, lam_at_5=SEED_A * 5.0 ** SEED_B),
                    wall_s=wall)
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     hist = {k: np.asarray([r[k] for r in rows]) for k in
-            ("n_bar", "lam", "lam_core", "L_p", "L_e", "E_macro", "n_particles", "n_bonds",
-             "porosity", "gap_tolerance", "target", "r_min", "r_max", "steps")}
+            ("n_bar", "lam", "lam_core", "L_p", "L_e", "L_p_loading", "E_macro",
+             "n_particles", "n_bonds", "porosity", "gap_tolerance", "target", "r_min",
+             "r_max", "steps")}
+    hist["loading"] = np.asarray([r["loading"] for r in rows], dtype="S8")
+    hist["section"] = np.asarray([r["section"] for r in rows], dtype="S8")
     jdem.io.save_run(out / "coordination_study.h5", history=hist,
-                     attrs={"what": "002 §1.4 lambda vs N-bar", "fit_a": fit[0], "fit_b": fit[1],
-                            "fit_core_a": fit_core[0], "fit_core_b": fit_core[1],
-                            "wall_s": wall, "stress": STRESS, "damping": str(DAMPING)})
-    print(f"\n  fit      lambda = {fit[0]:.3g} N^{fit[1]:.2f} (r = {fit[2]:.3f}); "
-          f"lambda(5) = {n5(fit):.3f}")
-    print(f"  bulk fit lambda = {fit_core[0]:.3g} N^{fit_core[1]:.2f} (r = {fit_core[2]:.3f}); "
-          f"lambda(5) = {n5(fit_core):.3f}")
-    print(f"  seed     lambda = 60.5 N^-2.54; lambda(5) = {SEED_A * 5.0 ** SEED_B:.3f}")
+                     attrs={"what": "002 §1.4 lambda vs N-bar", "wall_s": wall,
+                            "stress": STRESS, "damping": str(DAMPING),
+                            "fits": json.dumps(fit_table)})
+    print()
+    for key, v in fits.items():
+        f, fc = v["lam"], v["core"]
+        print(f"  {key[0]:6s} {key[1]:8s} lambda = {f[0]:.3g} N^{f[1]:.2f} (r = {f[2]:.3f}), "
+              f"lambda(5) = {n5(f):.3f}; bulk {fc[0]:.3g} N^{fc[1]:.2f}, "
+              f"lambda(5) = {n5(fc):.3f}")
+    print(f"  seed            lambda = 60.5 N^-2.54; lambda(5) = {SEED_A * 5.0 ** SEED_B:.3f}")
     print(f"  wall time {wall:.0f} s -> {out}")
     return 0
+
+
+def n_rock(specimen):
+    return int(np.sum(np.asarray(specimen.particles.valid)))
 
 
 if __name__ == "__main__":

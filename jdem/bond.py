@@ -64,14 +64,82 @@ class BondGeometry(NamedTuple):
     r_min: Array
 
 
-def _shear_modulus(params: Params):
-    return params.bond_youngs / (2.0 * (1.0 + params.bond_poisson))
+#: the bond fields of ``Params`` that may be given per material (shape (M,))
+BOND_FIELDS = ("bond_youngs", "bond_poisson", "bond_tensile", "bond_cohesion",
+               "bond_friction_angle", "bond_tensile_strain", "bond_shear_strain",
+               "bond_damping")
+
+
+class BondMaterial(NamedTuple):
+    """Elastic and strength values of every bond row, () when ``Params`` holds one
+    value for all bonds, (B,) when it holds one per material (see
+    :func:`bond_material`).
+
+    youngs, shear_modulus  E, G [Pa] of the bar
+    tensile, cohesion      T0, c0 [Pa]
+    tan_phi                tan of the internal friction angle
+    tensile_strain, shear_strain   eps_lim, gamma_lim
+    damping                fraction of critical of the bond dashpots
+    """
+
+    youngs: Array
+    shear_modulus: Array
+    tensile: Array
+    cohesion: Array
+    tan_phi: Array
+    tensile_strain: Array
+    shear_strain: Array
+    damping: Array
+
+
+def bond_material(bonds: Bonds, particles: Particles, params: Params) -> BondMaterial:
+    """The bond values of every row.
+
+    With scalar ``bond_*`` fields every bond has them.  With per-material fields
+    (shape (M,), indexed by ``Particles.material``) a bond between particles of
+    materials a (radius R1) and b (R2) is the bar of 002 Fig 3 made of two
+    halves in series, R1 of material a and R2 of material b, so that
+
+        E = (R1 + R2) / (R1 / E_a + R2 / E_b)
+
+    and likewise G from G_a = E_a / (2 (1 + nu_a)); its strengths, friction
+    angle, fracture strains and damping are those of the weaker material (the
+    smaller of the two values).  For a = b this is the material's own value.
+    """
+    def shear(e, nu):
+        return e / (2.0 * (1.0 + nu))
+
+    per_material = jnp.ndim(params.bond_youngs) > 0
+    if not per_material:
+        return BondMaterial(
+            youngs=params.bond_youngs, shear_modulus=shear(params.bond_youngs,
+                                                           params.bond_poisson),
+            tensile=params.bond_tensile, cohesion=params.bond_cohesion,
+            tan_phi=jnp.tan(params.bond_friction_angle),
+            tensile_strain=params.bond_tensile_strain, shear_strain=params.bond_shear_strain,
+            damping=params.bond_damping)
+    ma, mb = particles.material[bonds.i], particles.material[bonds.j]
+    r1, r2 = particles.radius[bonds.i], particles.radius[bonds.j]
+    length = _den(r1 + r2)
+
+    def series(modulus):
+        return length / (r1 / modulus[ma] + r2 / modulus[mb])
+
+    weaker = lambda v: jnp.minimum(v[ma], v[mb])
+    g = shear(params.bond_youngs, params.bond_poisson)
+    return BondMaterial(
+        youngs=series(params.bond_youngs), shear_modulus=series(g),
+        tensile=weaker(params.bond_tensile), cohesion=weaker(params.bond_cohesion),
+        tan_phi=jnp.tan(weaker(params.bond_friction_angle)),
+        tensile_strain=weaker(params.bond_tensile_strain),
+        shear_strain=weaker(params.bond_shear_strain), damping=weaker(params.bond_damping))
 
 
 def bond_geometry(bonds: Bonds, particles: Particles, params: Params, dim: int,
                   section: str = "circular") -> BondGeometry:
     """Cross-section, length, stiffnesses and moments of area of every bond row;
-    ``section`` the 2D bending section (:class:`jdem.state.Config` ``bond_section``)."""
+    ``section`` the 2D bending section (:class:`jdem.state.Config` ``bond_section``);
+    E and G of each bond from :func:`bond_material`."""
     valid = bonds.valid
     r1 = particles.radius[bonds.i]
     r2 = particles.radius[bonds.j]
@@ -81,10 +149,9 @@ def bond_geometry(bonds: Bonds, particles: Particles, params: Params, dim: int,
     else:
         area = jnp.pi * r_min ** 2               # 002 eq 1 (3D)
     length = r1 + r2
-    e_mod = params.bond_youngs
-    g_mod = _shear_modulus(params)
-    kn = e_mod * area / _den(length)             # 002 eq 2
-    ks = g_mod * area / _den(length)
+    mat = bond_material(bonds, particles, params)
+    kn = mat.youngs * area / _den(length)        # 002 eq 2
+    ks = mat.shear_modulus * area / _den(length)
     if dim == 2 and section == "slab":           # a bar of unit thickness, width 2 r_min
         inertia = (2.0 * r_min) ** 3 / 12.0
         polar = 2.0 * inertia
@@ -209,11 +276,11 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     area, length, kn, ks = geo.area, geo.length, geo.kn, geo.ks
     area_d, length_d = _den(area), _den(length)
     dt = params.dt
-    e_mod = params.bond_youngs
-    g_mod = _shear_modulus(params)
-    t0, c0 = params.bond_tensile, params.bond_cohesion
-    tanphi = jnp.tan(params.bond_friction_angle)
-    eps_lim, gam_lim = params.bond_tensile_strain, params.bond_shear_strain
+    mat = bond_material(bonds, particles, params)
+    e_mod, g_mod = mat.youngs, mat.shear_modulus
+    t0, c0 = mat.tensile, mat.cohesion
+    tanphi = mat.tan_phi
+    eps_lim, gam_lim = mat.tensile_strain, mat.shear_strain
     z = lambda a: jnp.where(valid, a, jnp.zeros_like(a))
 
     # Vectors are component tuples of (B,) arrays (see jdem.kinematics); in 2D the
@@ -321,7 +388,7 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     live = valid & ~was_broken
     m1_, m2_ = particles.mass[i], particles.mass[j]
     m_eff = jnp.where(live, m1_ * m2_ / _den(m1_ + m2_), 0.0)
-    visc = lambda k: 2.0 * params.bond_damping * jnp.sqrt(jnp.where(live, m_eff * k, 1.0)) / dt
+    visc = lambda k: 2.0 * mat.damping * jnp.sqrt(jnp.where(live, m_eff * k, 1.0)) / dt
     fn_d = jnp.where(live, visc(kn) * du_n, 0.0)            # compression positive
     visc_s = visc(ks)
     fs_d = tuple(jnp.where(live, -visc_s * d, 0.0) for d in d_us)

@@ -37,6 +37,7 @@ import os
 import pathlib
 import sys
 import time
+import warnings
 
 
 def demo(out="results/demo", small=False):
@@ -482,6 +483,10 @@ def main(argv=None):
     args = ap.parse_args(argv)
     from jdem.validate import InputError
 
+    # a warning is a message to the user, not to a programmer: no file and line
+    plain = warnings.formatwarning
+    warnings.formatwarning = lambda message, category, *rest: \
+        f"jdem {args.cmd}: {category.__name__}: {message}\n"
     try:
         if args.cmd == "demo":
             demo(args.out, args.small)
@@ -493,6 +498,8 @@ def main(argv=None):
     except InputError as e:
         print(f"jdem {args.cmd}: error: {e}", file=sys.stderr)
         return 2
+    finally:
+        warnings.formatwarning = plain
     return 0
 
 

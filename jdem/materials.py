@@ -20,7 +20,8 @@ from jdem.state import Params, make_params
 from jdem.validate import InputError, check_params
 
 ROCK = 0     #: material index of the rock particles
-PLATEN = 1   #: material index of platens and lateral walls
+PLATEN = 1   #: material index of platens, lateral walls and bonded loading plates
+PLATE_STRENGTH = 1e12   #: bond strengths [Pa] of a loading plate (it never yields)
 
 #: name -> the Params fields it sets
 PARAMETERS = {
@@ -43,8 +44,24 @@ def check_names(names):
             raise InputError(f"unknown parameter {n!r}; choose from {sorted(PARAMETERS)}")
 
 
+def per_material_bonds(params: Params) -> bool:
+    """True if the ``bond_*`` fields of ``params`` hold one value per material
+    (their shape is that of ``dt`` plus a material axis)."""
+    return np.ndim(params.bond_youngs) > np.ndim(params.dt)
+
+
+def rock_bond_value(params: Params, field: str):
+    """The value of the bond field ``field`` for the rock (material :data:`ROCK`):
+    the field itself when it holds one value for all bonds, else its rock entry
+    (batch axes kept)."""
+    value = getattr(params, field)
+    return value[..., ROCK] if per_material_bonds(params) else value
+
+
 def material(params: Params, values: dict) -> Params:
     """``params`` with the named values set (:data:`PARAMETERS`); traceable.
+    With per-material bond fields the named values set the rock's (material 0)
+    entries; the other materials keep theirs.
 
     When ``E`` or ``nu`` change, the rock contacts (material 0) follow as in
     :func:`rock_params`: kn scales with E, ks = kn / (2 (1 + nu)).
@@ -53,24 +70,33 @@ def material(params: Params, values: dict) -> Params:
     new = {}
     for name, v in values.items():
         for field in PARAMETERS[name]:
-            new[field] = jnp.asarray(v, jnp.asarray(getattr(params, field)).dtype)
+            old = jnp.asarray(getattr(params, field))
+            v = jnp.asarray(v, old.dtype)
+            if per_material_bonds(params):
+                shape = jnp.broadcast_shapes(old.shape[:-1], v.shape) + old.shape[-1:]
+                new[field] = jnp.broadcast_to(old, shape).at[..., ROCK].set(v)
+            else:
+                new[field] = v
     out = params._replace(**new)
     if "E" in values or "nu" in values:
-        kn0 = params.kn[..., 0] * out.bond_youngs / params.bond_youngs
-        ks0 = kn0 / (2.0 * (1.0 + out.bond_poisson))
+        kn0 = params.kn[..., 0] * (rock_bond_value(out, "bond_youngs")
+                                   / rock_bond_value(params, "bond_youngs"))
+        ks0 = kn0 / (2.0 * (1.0 + rock_bond_value(out, "bond_poisson")))
         out = out._replace(kn=out.kn.at[..., 0].set(kn0), ks=out.ks.at[..., 0].set(ks0))
     return out
 
 
 def values_of(params: Params, names) -> dict:
-    """The named values of ``params`` (first field of each name) as floats."""
+    """The named values of ``params`` (first field of each name; the rock's with
+    per-material bond fields) as floats."""
     check_names(names)
-    return {n: float(np.asarray(getattr(params, PARAMETERS[n][0]))) for n in names}
+    return {n: float(np.asarray(rock_bond_value(params, PARAMETERS[n][0]))) for n in names}
 
 
 def rock_params(dim: int = 2, *, E=30e9, nu=0.22, T0=3e6, c0=3e6, phi_deg=30.0, kappa=1e-3,
                 local_damping=0.8, radius=None, friction=None, platen_stiffness=10.0,
-                platen_friction=0.0, dt=1e-8, **kw) -> Params:
+                platen_friction=0.0, plate_youngs=None, plate_poisson=0.3, dt=1e-8,
+                **kw) -> Params:
     """``Params`` of a bonded rock (material 0) and a platen (material 1, 002 §2).
 
     E, nu         Young's modulus [Pa] and Poisson ratio of the linked bars (002 eq 2)
@@ -94,6 +120,12 @@ def rock_params(dim: int = 2, *, E=30e9, nu=0.22, T0=3e6, c0=3e6, phi_deg=30.0, 
     default (``platen_friction = 0``: "normal constraint" of the platens, 002
     §2.1; the smaller friction coefficient of a pair is used).  ``dt`` is a
     placeholder: the lab tests replace it by ``jdem.timestep.recommended``.
+
+    plate_youngs  None (default): one set of bond values for all bonds.  A modulus
+                  [Pa] (steel: 200e9) makes the bond fields per material: material
+                  1 gets E = ``plate_youngs``, nu = ``plate_poisson`` and strengths
+                  of :data:`PLATE_STRENGTH` (it never yields), for the bonded
+                  loading plates of :func:`jdem.specimen.add_plates` (002 Fig 7)
     Further keywords go to :func:`jdem.state.make_params`.
     """
     if dim not in (2, 3):
@@ -108,19 +140,24 @@ def rock_params(dim: int = 2, *, E=30e9, nu=0.22, T0=3e6, c0=3e6, phi_deg=30.0, 
         kn = float(E) * np.pi * float(radius) / 2.0
     mu = float(np.tan(np.deg2rad(phi_deg))) if friction is None else float(friction)
     kappas = np.atleast_1d(np.asarray(kappa, dtype=np.float64))
+    phi = float(np.deg2rad(phi_deg))
+    bond = dict(bond_youngs=E, bond_poisson=nu, bond_tensile=T0, bond_cohesion=c0,
+                bond_friction_angle=phi, bond_tensile_strain=float(kappas[0]),
+                bond_shear_strain=float(kappas[0]))
+    if plate_youngs is not None:   # material 1: a steel plate that never yields
+        plate = dict(bond_youngs=plate_youngs, bond_poisson=plate_poisson,
+                     bond_tensile=PLATE_STRENGTH, bond_cohesion=PLATE_STRENGTH,
+                     bond_friction_angle=phi, bond_tensile_strain=1.0, bond_shear_strain=1.0)
+        bond = {k: [float(v), float(plate[k])] for k, v in bond.items()}
     base = make_params(dim=dim, n_materials=2, dt=dt, kn=[kn, platen_stiffness * kn],
                        ks=[kn * g_over_e, platen_stiffness * kn * g_over_e],
                        friction=[mu, platen_friction], youngs=[E, platen_stiffness * E],
-                       poisson=[nu, nu], local_damping=local_damping, bond_youngs=E,
-                       bond_poisson=nu, bond_tensile=T0, bond_cohesion=c0,
-                       bond_friction_angle=float(np.deg2rad(phi_deg)),
-                       bond_tensile_strain=float(kappas[0]), bond_shear_strain=float(kappas[0]),
-                       **kw)
+                       poisson=[nu, nu], local_damping=local_damping, **bond, **kw)
     if np.ndim(kappa) == 0:
         return base
     params = broadcast_batch(base, kappas.size)
     k = jnp.asarray(kappas, dtype=jnp.asarray(base.dt).dtype)
-    params = params._replace(bond_tensile_strain=k, bond_shear_strain=k)
+    params = material(params, {"kappa": k})
     check_params(params)
     return jax.tree_util.tree_map(lambda a: jnp.array(a), params)  # own the memory
 

@@ -211,6 +211,9 @@ class Params(NamedTuple):
     viscous_damping  ()    mass-proportional viscous damping [1/s] (000 eq 3-9, alpha M)
     bond_youngs      ()    linked-bar E [Pa] (002 eq 2)
     bond_poisson     ()    linked-bar nu; G = E / (2 (1 + nu))
+      (every ``bond_*`` field is either () for all bonds or, all of them
+      together, (M,) per material: a bond between two materials is the bar of
+      two halves in series with the weaker strengths, :func:`jdem.bond.bond_material`)
     bond_tensile     ()    initial tensile strength T0 [Pa] (002 eq 6)
     bond_cohesion    ()    initial cohesion c0 [Pa] (002 eq 8)
     bond_friction_angle () internal friction angle phi [rad] (002 eq 8)
@@ -324,18 +327,26 @@ def make_params(dim: int = 2, n_materials: int = 1, *, dt: float = 1e-6,
     """
     dtype = dtype or jnp.zeros(()).dtype
     f = lambda v: jnp.asarray(v, dtype=dtype)
-    per_mat = lambda v: jnp.broadcast_to(f(v), (n_materials,)) + jnp.zeros((n_materials,), dtype)
+    def per_mat(v, name):
+        if np.ndim(v) > 0 and np.shape(v) != (n_materials,):
+            raise InputError(f"{name} must be one value or one per material ({n_materials}), "
+                             f"got shape {np.shape(v)}")
+        return jnp.broadcast_to(f(v), (n_materials,)) + jnp.zeros((n_materials,), dtype)
     if gravity is None:
         gravity = np.zeros(dim)
+    bond = dict(bond_youngs=bond_youngs, bond_poisson=bond_poisson, bond_tensile=bond_tensile,
+                bond_cohesion=bond_cohesion, bond_friction_angle=bond_friction_angle,
+                bond_tensile_strain=bond_tensile_strain, bond_shear_strain=bond_shear_strain,
+                bond_damping=bond_damping)
+    # one value for all bonds, or (any field given as a sequence) one per material
+    per_material = any(np.ndim(v) > 0 for v in bond.values())
     params = Params(
-        dt=f(dt), gravity=f(gravity), kn=per_mat(kn), ks=per_mat(kn if ks is None else ks),
-        friction=per_mat(friction), youngs=per_mat(youngs), poisson=per_mat(poisson),
+        dt=f(dt), gravity=f(gravity), kn=per_mat(kn, "kn"),
+        ks=per_mat(kn if ks is None else ks, "ks"), friction=per_mat(friction, "friction"),
+        youngs=per_mat(youngs, "youngs"), poisson=per_mat(poisson, "poisson"),
         contact_damping=f(contact_damping), local_damping=f(local_damping),
-        viscous_damping=f(viscous_damping), bond_youngs=f(bond_youngs),
-        bond_poisson=f(bond_poisson), bond_tensile=f(bond_tensile),
-        bond_cohesion=f(bond_cohesion), bond_friction_angle=f(bond_friction_angle),
-        bond_tensile_strain=f(bond_tensile_strain), bond_shear_strain=f(bond_shear_strain),
-        bond_damping=f(bond_damping))
+        viscous_damping=f(viscous_damping),
+        **{k: per_mat(v, k) if per_material else f(v) for k, v in bond.items()})
     check_params(params, dim)
     return params
 

@@ -107,7 +107,8 @@ def _dashpot_sums(state: State, params: Params, config: Config):
         g = bond.bond_geometry(b, p, params, config.dim, config.bond_section)
         live = b.valid & ~b.broken                           # bond dashpots: intact only
         mb = p.mass[b.i] * p.mass[b.j] / jnp.where(live, p.mass[b.i] + p.mass[b.j], 1.0)
-        visc = lambda k: jnp.where(live, 2.0 * params.bond_damping * jnp.sqrt(
+        zeta = bond.bond_material(b, p, params).damping
+        visc = lambda k: jnp.where(live, 2.0 * zeta * jnp.sqrt(
             jnp.where(live, mb * k, 0.0)), 0.0)
         cn, cs = visc(g.kn), visc(g.ks)
         c_tr = c_tr + segment_add(cn + cs, b.i, n) + segment_add(cn + cs, b.j, n)

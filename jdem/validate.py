@@ -272,6 +272,16 @@ def check_params(params, dim=None):
     if len(set(lengths.values())) > 1:
         raise InputError("params per-material arrays differ in length: "
                          + ", ".join(f"params.{k} {v}" for k, v in lengths.items()))
+    # bond fields: all one value per member (the shape of dt), or all one per material
+    member_shape = np.shape(params.dt)
+    bond_shapes = {name: np.shape(value) for name, value in params._asdict().items()
+                   if name.startswith("bond_")}
+    allowed = (member_shape, member_shape + lengths["kn"])
+    if len(set(bond_shapes.values())) > 1 or next(iter(bond_shapes.values())) not in allowed:
+        raise InputError(f"params bond fields must all have shape {member_shape} (one value "
+                         f"for all bonds) or all {member_shape + lengths['kn']} (one per "
+                         "material), got " + ", ".join(f"params.{k} {v}"
+                                                       for k, v in bond_shapes.items()))
     if dim is not None and np.shape(params.gravity)[-1:] != (dim,):
         raise InputError(f"params.gravity must have shape ({dim},), got {np.shape(params.gravity)}")
 

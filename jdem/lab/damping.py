@@ -87,10 +87,12 @@ def damped_params(params: Params, damping: Damping) -> Params:
     term is not in ``Params``: it acts through the test's boundary function)."""
     like = lambda v: jnp.full(np.shape(params.local_damping), v,
                               jnp.asarray(params.local_damping).dtype)
+    bond = lambda v: jnp.full(np.shape(params.bond_damping), v,   # () or per material
+                              jnp.asarray(params.bond_damping).dtype)
     if damping.kind == "local":
-        return params._replace(local_damping=like(damping.ratio), bond_damping=like(0.0),
+        return params._replace(local_damping=like(damping.ratio), bond_damping=bond(0.0),
                                contact_damping=like(0.0), viscous_damping=like(0.0))
-    return params._replace(local_damping=like(0.0), bond_damping=like(damping.ratio),
+    return params._replace(local_damping=like(0.0), bond_damping=bond(damping.ratio),
                            contact_damping=like(damping.ratio), viscous_damping=like(0.0))
 
 

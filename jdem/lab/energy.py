@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from jdem import bond as bond_mod
 from jdem.lab import damping as damping_mod
 from jdem.lab.core import run as run_test
 from jdem.lab.pattern import bond_points
 from jdem.lab.platen import UCS
+from jdem.materials import ROCK, rock_bond_value
 from jdem.specimen import as_arrays
 from jdem.validate import InputError
 
@@ -28,7 +28,7 @@ def continuum_strain_energy(stress, E, nu, volume, plane="strain"):
 def coordination_energy_ratio(specimen, params, *, stress=1e6, plane="strain",
                               record_every=50, chunk_steps=2000, max_steps=200_000,
                               min_steps=10_000, tol=2e-3, dt=None, core_margin=0.2,
-                              damping=None, progress=False):
+                              damping=None, bond_section="circular", progress=False):
     """lambda = L_p / L_e of 002 §1.4 (eq 15-16) for one bonded 2D block.
 
     The block sits between a fixed bottom platen and a top platen servo-controlled
@@ -37,22 +37,30 @@ def coordination_energy_ratio(specimen, params, *, stress=1e6, plane="strain",
     platen stresses within ``tol`` of ``stress`` and the kinetic energy below
     ``tol`` x the bond energy (at least ``min_steps``, at most ``max_steps``).
 
-    L_p is the bond strain energy (:func:`jdem.bond.bond_strain_energy`, 002
-    eq 16, normal + shear).  L_e is the energy of a continuum block of the
+    L_p is the bond strain energy (002 eq 16, normal + shear, as
+    :func:`jdem.bond.bond_strain_energy`) of the rock's bonds (both particles of
+    material 0); with bonded loading plates (:func:`jdem.specimen.add_plates`)
+    the plates' bonds and their bonds to the rock are left out, as the seed's
+    finite-element plates are, and reported as ``L_p_loading``.  L_e is the energy of a continuum block of the
     same size and E, nu under the same uniaxial stress (002 eq 16), by default in
     plane strain: the seed's finite-element value, 0.151 J for 10 cm x 10 cm,
     E = 30 GPa, nu = 0.3, 1 MPa, is the plane-strain figure (1 - nu^2) sigma^2 V
     / (2E) = 0.1517 J (plane stress would give 0.1667 J).  V = width x height x
     1 m of the specimen box.
 
+    ``bond_section`` is the 2D bending section (:class:`jdem.state.Config`).
+
     Boundary effect: a random packing touches a flat platen at a few particles
     only, and the "seating" of the others takes a displacement comparable to the
     whole elastic one at 1 MPa on a small block; the bonds near the platens then
-    store extra energy.  ``lam_core`` = L_p / L_e over the bulk only: the bonds
-    whose contact point lies farther than ``core_margin`` x H from both platens,
-    against sigma^2 / (2 E') times that slab's volume.
+    store extra energy.  Steel plates bonded to the faces
+    (:func:`jdem.specimen.add_plates`, as the seed's plates of 002 Fig 7) load
+    every boundary particle and take that out.  ``lam_core`` = L_p / L_e over
+    the bulk only: the bonds whose contact point lies farther than
+    ``core_margin`` x H from both faces of the specimen box, against
+    sigma^2 / (2 E') times that slab's volume.
 
-    Returns a dict: ``lam``, ``L_p``, ``L_e``, ``lam_core``, ``L_p_core``,
+    Returns a dict: ``lam``, ``L_p``, ``L_e``, ``L_p_loading``, ``lam_core``, ``L_p_core``,
     ``L_e_core``, ``coordination`` (N-bar of the
     specimen), ``n_particles``, ``n_bonds``, ``steps``, ``top_stress``,
     ``bottom_stress``, ``avg_stress`` (d, d) (averaged stress tensor with the
@@ -64,7 +72,7 @@ def coordination_energy_ratio(specimen, params, *, stress=1e6, plane="strain",
     if np.ndim(params.dt) != 0:
         raise InputError("coordination_energy_ratio takes unbatched params")
     su = UCS.setup(specimen, params, top_stress=stress, platen_step=1e-12, max_strain=1e-9,
-                   record_every=record_every, dt=dt, damping=damping)
+                   record_every=record_every, dt=dt, damping=damping, bond_section=bond_section)
     n_chunk = max(1, chunk_steps // record_every)
     su = su.replace(plan=su.plan.replace(n_records=n_chunk, ramp_records=1))
     parts = []
@@ -96,9 +104,9 @@ def coordination_energy_ratio(specimen, params, *, stress=1e6, plane="strain",
         volume = float(np.prod(np.asarray(hi) - np.asarray(lo)))
     else:
         volume = h0 * float(np.prod(w0))
-    l_p = float(bond_mod.bond_strain_energy(state.bonds, state.particles, su.params, dim))
-    l_e = continuum_strain_energy(stress, float(su.params.bond_youngs),
-                                  float(su.params.bond_poisson), volume, plane)
+    l_e = continuum_strain_energy(stress, float(rock_bond_value(su.params, "bond_youngs")),
+                                  float(rock_bond_value(su.params, "bond_poisson")), volume,
+                                  plane)
     # the bulk: bonds whose contact point lies farther than core_margin x H from
     # either platen, against the continuum energy of that slab
     point, _, _ = bond_points(state)
@@ -106,17 +114,28 @@ def coordination_energy_ratio(specimen, params, *, stress=1e6, plane="strain",
     e_bond = 0.5 * (-np.asarray(b.normal_force) * np.asarray(b.u_n)
                     - np.sum(np.asarray(b.shear_force) * np.asarray(b.u_s), axis=-1))
     live = np.asarray(b.valid) & ~np.asarray(b.broken)
+    # the rock's bonds only: loading plates (jdem.specimen.add_plates, material
+    # != ROCK) and their bonds to the rock are the loading device, as the seed's
+    # finite-element plates are
+    mat = np.asarray(state.particles.material)
+    rock = (mat[np.asarray(b.i)] == ROCK) & (mat[np.asarray(b.j)] == ROCK)
+    l_p = float(np.sum(np.where(live & rock, e_bond, 0.0)))
+    l_p_loading = float(np.sum(np.where(live & ~rock, e_bond, 0.0)))
     ax = dim - 1
-    wpos = np.asarray(state.walls.point)[:2, ax]
+    if lo is not None:    # the rock's faces (the platens when there are no plates)
+        wpos = np.array([float(lo[ax]), float(hi[ax])])
+    else:
+        wpos = np.asarray(state.walls.point)[:2, ax]
     height = float(wpos[1] - wpos[0])
     margin = core_margin * height
-    core = live & (point[:, ax] > wpos[0] + margin) & (point[:, ax] < wpos[1] - margin)
+    core = live & rock & (point[:, ax] > wpos[0] + margin) & (point[:, ax] < wpos[1] - margin)
     l_p_core = float(np.sum(np.where(core, e_bond, 0.0)))
     l_e_core = l_e * (height - 2 * margin) / height
     n_b = int(np.sum(np.asarray(bonds.valid)))
     n_p = int(np.sum(np.asarray(particles.valid)))
     coord = getattr(specimen, "coordination", None)
-    return dict(lam=l_p / l_e, L_p=l_p, L_e=l_e, lam_core=l_p_core / l_e_core,
+    return dict(lam=l_p / l_e, L_p=l_p, L_e=l_e, L_p_loading=l_p_loading,
+                lam_core=l_p_core / l_e_core,
                 L_p_core=l_p_core, L_e_core=l_e_core,
                 coordination=float(coord) if coord is not None else 2.0 * n_b / n_p,
                 n_particles=n_p, n_bonds=n_b, steps=steps, top_stress=top, bottom_stress=bot,

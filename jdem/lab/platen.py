@@ -38,7 +38,7 @@ from jdem import measure, precision, timestep
 from jdem.batch import broadcast_batch, is_batched, member, stack_states
 from jdem.lab import damping as damping_mod
 from jdem.lab.core import LabTest, Plan, Setup, in_precision, n_records_for, ramp
-from jdem.materials import PLATEN
+from jdem.materials import PLATEN, rock_bond_value
 from jdem.simulate import make_state
 from jdem.specimen import as_arrays
 from jdem.state import make_walls
@@ -431,7 +431,7 @@ def platen_setup(test: LabTest, specimens, params, *, max_strain=3e-3, loading_r
     rate = DEFAULT_LOADING_RATE if loading_rate is None and steps is None else loading_rate
     if rate is not None and not (np.isfinite(rate) and rate > 0):
         raise InputError(f"loading_rate must be > 0, got {loading_rate!r}")
-    youngs = float(np.max(np.asarray(params.bond_youngs)))
+    youngs = float(np.max(np.asarray(rock_bond_value(params, "bond_youngs"))))
     built = []
     for m in members:
         particles, bonds, info = as_arrays(m)

@@ -30,6 +30,7 @@ from jdem.lab import damping as damping_mod
 from jdem.lab.core import LabTest, Plan, Setup, in_precision, n_records_for, ramp
 from jdem.lab.platen import (DEFAULT_LOADING_RATE, DEFAULT_RAMP_TRANSITS, DEFAULT_RECORDS,
                              bulk_density, extent, slice_widths)
+from jdem.materials import rock_bond_value
 from jdem.simulate import make_state
 from jdem.specimen import as_arrays
 from jdem.validate import InputError
@@ -167,7 +168,7 @@ def setup(specimen, params, *, max_strain=1e-3, loading_rate=None, damping=None,
     dt = float(dt)
     params = damping_mod.damped_params(params, damping)
     params = params._replace(dt=jnp.full(np.shape(params.dt), dt, jnp.asarray(params.dt).dtype))
-    youngs = float(np.max(np.asarray(params.bond_youngs)))
+    youngs = float(np.max(np.asarray(rock_bond_value(params, "bond_youngs"))))
     rho = bulk_density(particles)
     wave = math.sqrt(youngs / rho)
     h0 = float(z[top].mean() - z[bottom].mean())

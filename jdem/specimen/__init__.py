@@ -96,7 +96,9 @@ Modules
   simple cubic and fcc lattices, bonded (:func:`bonded_lattice`), and the
   triangular lattice's elastic constants;
 * :mod:`jdem.specimen.loads` the particles on a face, pressure and traction
-  loads (:func:`pressure_load`, :func:`surface_load`).
+  loads (:func:`pressure_load`, :func:`surface_load`);
+* :mod:`jdem.specimen.plates` elastic loading plates of bonded discs on a 2D
+  specimen's top and bottom faces (:func:`add_plates`, 002 Fig 7).
 """
 from jdem.specimen.container import (  # noqa: F401
     DISC_SIDES,
@@ -109,3 +111,4 @@ from jdem.specimen.build import generate, specimen_for_coordination  # noqa: F40
 from jdem.specimen.edit import as_arrays, excavate, flatten_disc, remove, subset  # noqa: F401
 from jdem.specimen.lattice import bonded_lattice, lattice_packing, lattice_sites  # noqa: F401
 from jdem.specimen.loads import face_particles, pressure_load, surface_load  # noqa: F401
+from jdem.specimen.plates import add_plates  # noqa: F401
