@@ -64,7 +64,10 @@ def coordination_energy_ratio(specimen, params, *, stress=1e6, plane="strain",
     ``L_e_core``, ``coordination`` (N-bar of the
     specimen), ``n_particles``, ``n_bonds``, ``steps``, ``top_stress``,
     ``bottom_stress``, ``avg_stress`` (d, d) (averaged stress tensor with the
-    current volume), ``axial_strain``, ``E_macro`` = stress / axial strain,
+    current volume), ``axial_strain`` (platen displacement / platen distance h0),
+    ``E_macro`` = stress H / (platen displacement), H the height of the specimen
+    box (with loading plates: the rock's height; the plates' own shortening,
+    2 x 2 rows of steel discs, is counted as the rock's),
     ``kinetic_energy``, ``contact_energy``, ``converged`` and the ``history``.
     """
     particles, bonds, info = as_arrays(specimen)
@@ -140,6 +143,6 @@ def coordination_energy_ratio(specimen, params, *, stress=1e6, plane="strain",
                 coordination=float(coord) if coord is not None else 2.0 * n_b / n_p,
                 n_particles=n_p, n_bonds=n_b, steps=steps, top_stress=top, bottom_stress=bot,
                 avg_stress=history["avg_stress"][-1], axial_strain=float(history["axial_strain"][-1]),
-                E_macro=stress / float(history["axial_strain"][-1]),
+                E_macro=stress * height / (float(history["axial_strain"][-1]) * h0),
                 kinetic_energy=ke, contact_energy=float(history["contact_energy"][-1]),
                 converged=converged, history=history, state=state, config=config)
