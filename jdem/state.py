@@ -272,7 +272,10 @@ class Config:
                       unit-thickness bar of a 2D model, I = 1 m x min(2R1, 2R2)^3 / 12).
                       The circular section is ~1.2e-3 of the slab's for 1 mm discs
                       and scales with the disc size in metres (not scale-free);
-                      3D bonds are always circular
+                      3D bonds are always circular.  The default is the seed's:
+                      with it the strain-energy ratio follows the seed's law
+                      lambda(N-bar) (002 eq 17) more closely at low N-bar
+                      (experiments/results/coordination_study_small)
 
     The neighbour-list capacity C is the length of the ``Contacts`` arrays
     (a property of the state, not of the configuration).
