@@ -184,6 +184,13 @@ def test_plates_are_bonded_lattices_on_the_faces(block):
     assert plate_plate.sum() == 2 * (4 * n - 5)
     with pytest.raises(InputError, match="rows"):
         add_plates(block, rows=0)
+    # the lab tests read strains over the rock: the platen distance less the plates
+    setup = lab.UCS.setup(pl, rock_params(2, plate_youngs=200e9), precision="float64")
+    (_, y_lo), (_, y_hi) = block.box
+    assert float(setup.frame.h0) == pytest.approx(y_hi - y_lo, rel=1e-12)
+    assert float(np.asarray(setup.state.walls.point)[1, 1]
+                 - np.asarray(setup.state.walls.point)[0, 1]) == pytest.approx(
+        y_hi - y_lo + 2 * pl.info["plate_thickness"], rel=1e-12)
 
 
 def test_bonded_plates_take_the_seating_out_of_the_energy_ratio(block):

@@ -56,7 +56,8 @@ class PlatenFrame(NamedTuple):
     axis for an ensemble).
 
     h0          initial platen distance [m] (a preloaded test measures its own at
-                the end of the preload)
+                the end of the preload), less the thickness of bonded loading
+                plates (``info["plate_thickness"]``, jdem.specimen.add_plates)
     w0          (d-1,) initial lateral extents [m] (slices of the packing; with
                 lateral walls their distance)
     area        platen area [m^2] of the axial stress (2D: width x 1 m; Brazilian: 1,
@@ -500,8 +501,10 @@ def platen_setup(test: LabTest, specimens, params, *, max_strain=3e-3, loading_r
                 2.0 * info["radius"]) if "radius" in info else h_box
         gauge, gauge_w0 = lateral_gauges(particles, dim)
         gauge = np.pad(gauge, ((0, n_cap - gauge.shape[0]), (0, 0)))
+        # bonded loading plates (jdem.specimen.add_plates): strains over the rock
+        h_rock = h_box - 2.0 * float(info.get("plate_thickness", 0.0))
         frames.append(PlatenFrame(
-            h0=np.asarray(h_box), w0=np.asarray(w0, np.float64),
+            h0=np.asarray(h_rock), w0=np.asarray(w0, np.float64),
             area=np.asarray(1.0 if disc else float(np.prod(widths))),
             diameter=np.asarray(diam), velocity=vel,
             background=np.asarray(damping_mod.background_coefficient(
