@@ -4,6 +4,7 @@ mode (Fig 12), per fracture strain kappa, beside the seed's statements.
 
     python experiments/ucs_stages.py                        # kappa 0, 0.3 %, 2.4 %
     python experiments/ucs_stages.py --kappas 0 0.001 0.003 0.006 0.012 0.024 --seed 3
+    python experiments/ucs_stages.py --plates --out experiments/results/ucs_stages_plates
 
 One packing of the reduced study (``experiments/ucs_seed_bands.py``: a 1.8 cm x
 3.6 cm rectangle, r in [0.2, 0.35] mm, N-bar 5, the seed's material, local damping
@@ -36,7 +37,7 @@ import numpy as np  # noqa: E402
 
 from jdem import io, lab  # noqa: E402
 from jdem.materials import rock_params  # noqa: E402
-from jdem.specimen import generate  # noqa: E402
+from jdem.specimen import add_plates, generate  # noqa: E402
 
 SIZE = (0.018, 0.036)
 RADII = (0.2e-3, 0.35e-3)
@@ -52,12 +53,19 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=2)
     ap.add_argument("--kappas", type=float, nargs="+", default=[0.0, 3e-3, 2.4e-2])
     ap.add_argument("--out", type=pathlib.Path, default=OUT)
+    ap.add_argument("--plates", action="store_true",
+                    help="load through steel plates bonded to the faces (jdem.specimen."
+                         "add_plates, 002 Fig 7) instead of rigid frictionless platens")
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     spec = generate("rectangle", SIZE, *RADII, seed=a.seed, target_coordination=5.0)
     n = int(np.sum(np.asarray(spec.particles.valid)))
-    setup = lab.UCS.setup([spec] * len(a.kappas), rock_params(2, kappa=list(a.kappas)),
+    n_bonds = int(np.sum(np.asarray(spec.bonds.valid)))
+    if a.plates:
+        spec = add_plates(spec)
+    params = rock_params(2, kappa=list(a.kappas), plate_youngs=200e9 if a.plates else None)
+    setup = lab.UCS.setup([spec] * len(a.kappas), params,
                           platen_step=STEP, max_strain=4e-3, damping=lab.local(0.8),
                           record_every=50)
     res = lab.run(setup, stop_stress_ratio=0.15, progress=True, warn_dynamic=False)
@@ -65,7 +73,6 @@ def main(argv=None):
     st = lab.curve_stages(res.history)
     rows = [dict(kappa=k, **{c: float(np.asarray(st[c])[m]) for c in COLUMNS})
             for m, k in enumerate(a.kappas)]
-    n_bonds = int(np.sum(np.asarray(spec.bonds.valid)))
     command = "python experiments/ucs_stages.py " + " ".join(
         argv if argv is not None else sys.argv[1:])
     out = dict(date=datetime.date.today().isoformat(), command=command, n_discs=n,
@@ -77,7 +84,10 @@ def main(argv=None):
                 attrs={"kappas": list(a.kappas), "seed": a.seed, "command": command})
     md = ["# Stages of the UCS curve and breaks by mode (002 §2.2-2.3, Fig 10, 12, 15)", "",
           f"{out['date']}, `{command}`, float64, 2-core CPU; packing {a.seed}: {n} discs, "
-          f"{n_bonds} bonds; {run_s:.0f} s.", "",
+          f"{n_bonds} bonds; {run_s:.0f} s."
+          + (f" Loaded through bonded steel plates ({spec.info['n_plate_discs']} discs; the "
+             "break counts include the rock discs' bonds to the plates)." if a.plates else ""),
+          "",
           "| kappa % | linear end MPa (seed ~5.9) | first break MPa | peak MPa | peak strain "
           "1e-6 | non-linear / linear rise (seed ~0.2 at 0, > 2 at 2.4 %) | steepest descent "
           "GPa | residual MPa (seed 0.4-2) | tension / shear breaks at peak | at end |",
