@@ -67,3 +67,24 @@ def test_calibrate_reads_a_lateral_strain_column_when_the_csv_has_one(tmp_path):
     assert calibrate.load_target(two, lateral_column="auto").lateral_strain is None
     t = calibrate.load_target(three, lateral_column="auto")
     assert np.isfinite(t.lateral_strain[:50]).all() and np.isnan(t.lateral_strain[50:]).all()
+
+
+def test_warnings_reach_the_user_without_a_source_line():
+    """A warning raised under ``jdem`` (e.g. a calibration that stalled) is printed
+    as ``jdem <command>: UserWarning: ...``, not with the file and line of the
+    code that raised it; a fresh process, because pytest records warnings."""
+    import subprocess
+    import sys
+
+    code = ("import warnings, jdem.cli as c\n"
+            "c.demo = lambda out, small: warnings.warn('the fit stalled')\n"
+            "c.main(['demo'])\n"
+            "warnings.warn('after main')\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert lines[0] == "jdem demo: UserWarning: the fit stalled"
+    assert "cli.py" not in out.stderr
+    # the default formatting is back after main returns
+    assert any("after main" in line and "<string>" in line for line in lines[1:])
