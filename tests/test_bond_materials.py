@@ -144,6 +144,9 @@ def test_per_material_bond_fields_are_checked_and_set_per_material():
     np.testing.assert_allclose(out.bond_tensile, [5e6, rock.bond_tensile[1]])
     np.testing.assert_allclose(out.kn, [rock.kn[0] * 1.5, rock.kn[1]])
     assert values_of(out, ["E", "T0"]) == {"E": 45e9, "T0": 5e6}
+    from jdem.lab.single_bond import single_bond_setup
+    with pytest.raises(InputError, match="per material"):
+        single_bond_setup("tension", dim=2, params=rock)
     batched = rock_params(2, kappa=[1e-3, 2e-3], plate_youngs=200e9)
     assert batched.bond_tensile_strain.shape == (2, 2)
     np.testing.assert_allclose(batched.bond_tensile_strain[:, ROCK], [1e-3, 2e-3])

@@ -231,6 +231,10 @@ def single_bond_setup(mode, *, dim=3, params=None, radius=0.5, density=2500.0,
     params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=jnp.asarray(a).dtype), params)
     batched = is_batched(params)
     n_batch = int(np.shape(params.dt)[0]) if batched else None
+    if np.ndim(params.bond_youngs) > np.ndim(params.dt):
+        raise InputError("single_bond_test bonds two particles of material 0 and takes one "
+                         "value per bond field; params has them per material (shape "
+                         f"{np.shape(params.bond_youngs)}): pass the rock's values")
     if mode == "shear" and np.any(_np(params.local_damping) <= 0):
         warnings.warn("single_bond_test('shear') with params.local_damping = 0: the free "
                       "normal degree of freedom will oscillate", stacklevel=3)
