@@ -60,7 +60,7 @@ from jdem import InputError  # noqa: E402
 from jdem import lab  # noqa: E402
 from jdem.lab.energy import coordination_energy_ratio  # noqa: E402
 from jdem.materials import rock_params  # noqa: E402
-from jdem.specimen import add_plates, specimen_for_coordination  # noqa: E402
+from jdem.specimen import add_plates, generate, specimen_for_coordination  # noqa: E402
 
 SEED_A, SEED_B = 60.5, -2.54
 FULL = dict(size=(0.10, 0.10), spreads=((0.6e-3, 0.85e-3), (0.45e-3, 1.0e-3)),
@@ -99,6 +99,13 @@ def main(argv=None):
     ap.add_argument("--max-gap", type=float, default=0.5,
                     help="largest bonding gap tolerance / mean radius (default 0.5); more "
                          "reaches a higher N-bar, like the seed's embedding")
+    ap.add_argument("--vary", choices=("gap", "size", "porosity"), default="gap",
+                    help="how N-bar is varied: the bonding gap tolerance to reach each "
+                         "target (default); the disc size at a fixed gap of 0.2 mean radius "
+                         "(the particle count, the seed's case 1); the packing's porosity at "
+                         "that gap (looser packings)")
+    ap.add_argument("--loadings", nargs="+", choices=LOADINGS, default=list(LOADINGS))
+    ap.add_argument("--sections", nargs="+", choices=SECTIONS, default=list(SECTIONS))
     args = ap.parse_args(argv)
     small = args.small or os.environ.get("JDEM_SMALL") == "1"
     setup = dict(SMALL if small else FULL)
@@ -115,41 +122,38 @@ def main(argv=None):
               for loading in LOADINGS}
     print(f"  damping: {DAMPING}")
     rows, failed = [], []
-    for s_i, (r_lo, r_hi) in enumerate(setup["spreads"]):
-        for target in setup["targets"]:
-            t1 = time.time()
-            try:
-                sp = specimen_for_coordination(target, "rectangle", setup["size"], r_lo, r_hi,
-                                               seed=args.seed + s_i,
-                                               max_gap_tolerance=args.max_gap * 0.5 * (r_lo + r_hi))
-            except InputError as e:
-                failed.append(dict(spread=[r_lo, r_hi], target=target, error=str(e)))
-                print(f"  r in [{r_lo * 1e3:g}, {r_hi * 1e3:g}] mm, target N-bar {target}: "
-                      f"not reached ({e})")
-                continue
-            specimens = {"plates": add_plates(sp), "rigid": sp}
-            for loading in LOADINGS:
-                for section in SECTIONS:
-                    t2 = time.time()
-                    res = coordination_energy_ratio(specimens[loading], params[loading],
-                                                    stress=STRESS, damping=DAMPING,
-                                                    bond_section=section)
-                    row = dict(spread=s_i, r_min=r_lo, r_max=r_hi, target=target,
-                               loading=loading, section=section,
-                               n_bar=float(sp.coordination), n_particles=res["n_particles"],
-                               n_bonds=res["n_bonds"], porosity=float(sp.porosity),
-                               gap_tolerance=float(sp.info["gap_tolerance"]), lam=res["lam"],
-                               lam_core=res["lam_core"], L_p=res["L_p"], L_e=res["L_e"],
-                               L_p_loading=res["L_p_loading"], E_macro=res["E_macro"],
-                               converged=bool(res["converged"]), steps=res["steps"],
-                               seconds=time.time() - t2)
-                    rows.append(row)
-                    print(f"  r in [{r_lo * 1e3:g}, {r_hi * 1e3:g}] mm: N-bar "
-                          f"{row['n_bar']:.2f} ({n_rock(sp)} discs, porosity "
-                          f"{row['porosity']:.3f}), {loading:6s} {section:8s}: lambda "
-                          f"{row['lam']:.3f}, bulk {row['lam_core']:.3f}  "
-                          f"({row['seconds']:.0f} s)", flush=True)
-            print(f"    specimen done in {time.time() - t1:.0f} s", flush=True)
+    for s_i, r_lo, r_hi, target, make in specimen_jobs(args, setup):
+        t1 = time.time()
+        try:
+            sp = make()
+        except InputError as e:
+            failed.append(dict(spread=[r_lo, r_hi], target=target, error=str(e)))
+            print(f"  r in [{r_lo * 1e3:g}, {r_hi * 1e3:g}] mm, target {target}: "
+                  f"not reached ({e})")
+            continue
+        specimens = {"plates": add_plates(sp), "rigid": sp}
+        for loading in args.loadings:
+            for section in args.sections:
+                t2 = time.time()
+                res = coordination_energy_ratio(specimens[loading], params[loading],
+                                                stress=STRESS, damping=DAMPING,
+                                                bond_section=section)
+                row = dict(spread=s_i, r_min=r_lo, r_max=r_hi, target=target,
+                           way=args.vary, loading=loading, section=section,
+                           n_bar=float(sp.coordination), n_particles=res["n_particles"],
+                           n_bonds=res["n_bonds"], porosity=float(sp.porosity),
+                           gap_tolerance=float(sp.info["gap_tolerance"]), lam=res["lam"],
+                           lam_core=res["lam_core"], L_p=res["L_p"], L_e=res["L_e"],
+                           L_p_loading=res["L_p_loading"], E_macro=res["E_macro"],
+                           converged=bool(res["converged"]), steps=res["steps"],
+                           seconds=time.time() - t2)
+                rows.append(row)
+                print(f"  r in [{r_lo * 1e3:g}, {r_hi * 1e3:g}] mm: N-bar "
+                      f"{row['n_bar']:.2f} ({n_rock(sp)} discs, porosity "
+                      f"{row['porosity']:.3f}), {loading:6s} {section:8s}: lambda "
+                      f"{row['lam']:.3f}, bulk {row['lam_core']:.3f}  "
+                      f"({row['seconds']:.0f} s)", flush=True)
+        print(f"    specimen done in {time.time() - t1:.0f} s", flush=True)
     if not rows:
         print("no specimen reached its target")
         return 1
@@ -157,7 +161,7 @@ def main(argv=None):
     if len({r["n_bar"] for r in rows}) < 2:
         print("one N-bar only: figures without a fit")
     else:
-        for key in MARKERS:
+        for key in [k for k in MARKERS if k[0] in args.loadings and k[1] in args.sections]:
             sel = [r for r in rows if (r["loading"], r["section"]) == key]
             n_bar = np.array([r["n_bar"] for r in sel])
             fits[key] = dict(lam=power_fit(n_bar, [r["lam"] for r in sel]),
@@ -172,6 +176,8 @@ def main(argv=None):
                             (axes[1], "lam_core", "bulk (> 0.2 H from the faces)")):
         for c, key in enumerate(MARKERS):
             sel = [r for r in rows if (r["loading"], r["section"]) == key]
+            if not sel:
+                continue
             f = fits[key]["lam" if what == "lam" else "core"] if fits else None
             ax.plot([r["n_bar"] for r in sel], [r[what] for r in sel], MARKERS[key],
                     color=f"C{c}", mfc="none" if key[1] == "slab" else None,
@@ -202,8 +208,9 @@ def main(argv=None):
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     hist = {k: np.asarray([r[k] for r in rows]) for k in
             ("n_bar", "lam", "lam_core", "L_p", "L_e", "L_p_loading", "E_macro",
-             "n_particles", "n_bonds", "porosity", "gap_tolerance", "target", "r_min",
-             "r_max", "steps")}
+             "n_particles", "n_bonds", "porosity", "gap_tolerance", "r_min", "r_max",
+             "steps")}
+    hist["target"] = np.asarray([str(r["target"]) for r in rows], dtype="S24")
     hist["loading"] = np.asarray([r["loading"] for r in rows], dtype="S8")
     hist["section"] = np.asarray([r["section"] for r in rows], dtype="S8")
     jdem.io.save_run(out / "coordination_study.h5", history=hist,
@@ -219,6 +226,45 @@ def main(argv=None):
     print(f"  seed            lambda = 60.5 N^-2.54; lambda(5) = {SEED_A * 5.0 ** SEED_B:.3f}")
     print(f"  wall time {wall:.0f} s -> {out}")
     return 0
+
+
+def specimen_jobs(args, setup):
+    """``(spread index, r_min, r_max, target, make)`` per specimen; ``make()``
+    builds it.  ``--vary gap``: each N-bar target of each radius spread, by the
+    gap tolerance (up to ``--max-gap`` mean radii).  ``--vary size``: the first
+    spread scaled to mean radii ``SIZE_SCALES`` x its own (the particle count
+    changes, the area fraction does not), bonded at a gap of ``FIXED_GAP`` mean
+    radius.  ``--vary porosity``: the first spread packed at ``POROSITIES``,
+    bonded at that gap."""
+    jobs = []
+    if args.vary == "gap":
+        for s_i, (r_lo, r_hi) in enumerate(setup["spreads"]):
+            for target in setup["targets"]:
+                make = (lambda t=target, lo=r_lo, hi=r_hi, k=s_i: specimen_for_coordination(
+                    t, "rectangle", setup["size"], lo, hi, seed=args.seed + k,
+                    max_gap_tolerance=args.max_gap * 0.5 * (lo + hi)))
+                jobs.append((s_i, r_lo, r_hi, target, make))
+        return jobs
+    r_lo, r_hi = setup["spreads"][0]
+    if args.vary == "size":
+        for scale in SIZE_SCALES:
+            lo, hi = r_lo * scale, r_hi * scale
+            make = (lambda lo=lo, hi=hi: generate(
+                "rectangle", setup["size"], lo, hi, seed=args.seed,
+                gap_tolerance=FIXED_GAP * 0.5 * (lo + hi)))
+            jobs.append((0, lo, hi, f"mean radius x {scale:g}", make))
+    else:
+        for phi in POROSITIES:
+            make = (lambda phi=phi: generate(
+                "rectangle", setup["size"], r_lo, r_hi, seed=args.seed, target_porosity=phi,
+                gap_tolerance=FIXED_GAP * 0.5 * (r_lo + r_hi)))
+            jobs.append((0, r_lo, r_hi, f"porosity {phi:g}", make))
+    return jobs
+
+
+SIZE_SCALES = (2.0, 1.4, 1.0, 0.7)   # mean radius 1.45, 1.0, 0.73, 0.5 mm at 10 cm
+POROSITIES = (0.19, 0.21, 0.23)
+FIXED_GAP = 0.2                      # bonding gap / mean radius for --vary size, porosity
 
 
 def n_rock(specimen):
