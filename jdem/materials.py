@@ -79,8 +79,8 @@ def material(params: Params, values: dict) -> Params:
                 new[field] = v
     out = params._replace(**new)
     if "E" in values or "nu" in values:
-        kn0 = params.kn[..., 0] * (rock_bond_value(out, "bond_youngs")
-                                   / rock_bond_value(params, "bond_youngs"))
+        kn0 = (params.kn[..., 0] * rock_bond_value(out, "bond_youngs")
+               / rock_bond_value(params, "bond_youngs"))
         ks0 = kn0 / (2.0 * (1.0 + rock_bond_value(out, "bond_poisson")))
         out = out._replace(kn=out.kn.at[..., 0].set(kn0), ks=out.ks.at[..., 0].set(ks0))
     return out
