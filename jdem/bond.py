@@ -64,12 +64,6 @@ class BondGeometry(NamedTuple):
     r_min: Array
 
 
-#: the bond fields of ``Params`` that may be given per material (shape (M,))
-BOND_FIELDS = ("bond_youngs", "bond_poisson", "bond_tensile", "bond_cohesion",
-               "bond_friction_angle", "bond_tensile_strain", "bond_shear_strain",
-               "bond_damping")
-
-
 class BondMaterial(NamedTuple):
     """Elastic and strength values of every bond row, () when ``Params`` holds one
     value for all bonds, (B,) when it holds one per material (see
@@ -136,10 +130,11 @@ def bond_material(bonds: Bonds, particles: Particles, params: Params) -> BondMat
 
 
 def bond_geometry(bonds: Bonds, particles: Particles, params: Params, dim: int,
-                  section: str = "circular") -> BondGeometry:
+                  section: str = "circular", material: BondMaterial | None = None
+                  ) -> BondGeometry:
     """Cross-section, length, stiffnesses and moments of area of every bond row;
     ``section`` the 2D bending section (:class:`jdem.state.Config` ``bond_section``);
-    E and G of each bond from :func:`bond_material`."""
+    E and G of each bond from ``material`` (default: :func:`bond_material`)."""
     valid = bonds.valid
     r1 = particles.radius[bonds.i]
     r2 = particles.radius[bonds.j]
@@ -149,7 +144,7 @@ def bond_geometry(bonds: Bonds, particles: Particles, params: Params, dim: int,
     else:
         area = jnp.pi * r_min ** 2               # 002 eq 1 (3D)
     length = r1 + r2
-    mat = bond_material(bonds, particles, params)
+    mat = bond_material(bonds, particles, params) if material is None else material
     kn = mat.youngs * area / _den(length)        # 002 eq 2
     ks = mat.shear_modulus * area / _den(length)
     if dim == 2 and section == "slab":           # a bar of unit thickness, width 2 r_min
@@ -272,11 +267,11 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     """
     valid = bonds.valid
     i, j = bonds.i, bonds.j
-    geo = bond_geometry(bonds, particles, params, dim, section)
+    mat = bond_material(bonds, particles, params)
+    geo = bond_geometry(bonds, particles, params, dim, section, mat)
     area, length, kn, ks = geo.area, geo.length, geo.kn, geo.ks
     area_d, length_d = _den(area), _den(length)
     dt = params.dt
-    mat = bond_material(bonds, particles, params)
     e_mod, g_mod = mat.youngs, mat.shear_modulus
     t0, c0 = mat.tensile, mat.cohesion
     tanphi = mat.tan_phi

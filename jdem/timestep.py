@@ -104,10 +104,11 @@ def _dashpot_sums(state: State, params: Params, config: Config):
         c_tr = c_tr + jnp.sum(cw, axis=0)
     b = state.bonds
     if b.i.shape[0]:
-        g = bond.bond_geometry(b, p, params, config.dim, config.bond_section)
+        mat = bond.bond_material(b, p, params)
+        g = bond.bond_geometry(b, p, params, config.dim, config.bond_section, mat)
         live = b.valid & ~b.broken                           # bond dashpots: intact only
         mb = p.mass[b.i] * p.mass[b.j] / jnp.where(live, p.mass[b.i] + p.mass[b.j], 1.0)
-        zeta = bond.bond_material(b, p, params).damping
+        zeta = mat.damping
         visc = lambda k: jnp.where(live, 2.0 * zeta * jnp.sqrt(
             jnp.where(live, mb * k, 0.0)), 0.0)
         cn, cs = visc(g.kn), visc(g.ks)

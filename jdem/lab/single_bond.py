@@ -41,7 +41,7 @@ from jdem import bond as bond_mod
 from jdem import precision as precision_mod, timestep
 from jdem.batch import broadcast_batch, is_batched
 from jdem.kinematics import safe_norm
-from jdem.materials import seed_params
+from jdem.materials import per_material_bonds, seed_params
 from jdem.simulate import make_state, run
 from jdem.state import Params, make_particles
 from jdem.validate import InputError
@@ -231,7 +231,7 @@ def single_bond_setup(mode, *, dim=3, params=None, radius=0.5, density=2500.0,
     params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=jnp.asarray(a).dtype), params)
     batched = is_batched(params)
     n_batch = int(np.shape(params.dt)[0]) if batched else None
-    if np.ndim(params.bond_youngs) > np.ndim(params.dt):
+    if per_material_bonds(params):
         raise InputError("single_bond_test bonds two particles of material 0 and takes one "
                          "value per bond field; params has them per material (shape "
                          f"{np.shape(params.bond_youngs)}): pass the rock's values")

@@ -29,6 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from jdem.bond import bonds_for_pairs, create_bonds
+from jdem.specimen.bonding import near_pairs
 from jdem.specimen.container import Specimen
 from jdem.specimen.edit import as_arrays
 from jdem.state import make_particles
@@ -132,12 +133,13 @@ def add_plates(specimen, *, rows=2, radius=None, material=1, density=STEEL_DENSI
         pi.append(idx[np.asarray(lattice.i)[lv]])
         pj.append(idx[np.asarray(lattice.j)[lv]])
         inner = idx[:n_inner]
-        gap = (np.linalg.norm(pos[:, None, :] - all_pos[inner][None, :, :], axis=-1)
-               - rad[:, None] - radius)
-        r_i, p_k = np.nonzero(gap <= attach_gap)
-        pi.append(r_i)
-        pj.append(inner[p_k])
-        n_attached.append(int(r_i.size))
+        # rock-plate pairs among the rock and the inner row (rock rows come first)
+        a, b, _ = near_pairs(np.concatenate([pos, all_pos[inner]]),
+                             np.concatenate([rad, all_rad[inner]]), attach_gap)
+        cross = (a < n_rock) & (b >= n_rock)
+        pi.append(a[cross])
+        pj.append(inner[b[cross] - n_rock])
+        n_attached.append(int(np.sum(cross)))
     bi, bj = np.concatenate(pi), np.concatenate(pj)
     lo, hi = np.minimum(bi, bj), np.maximum(bi, bj)
     new_bonds = bonds_for_pairs(lo, hi, 2, dtype=particles.pos.dtype)
