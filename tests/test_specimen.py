@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from jdem import InputError
-from jdem.specimen import Specimen, generate, specimen_for_coordination
+from jdem.specimen import Specimen, embed, generate, specimen_for_coordination
 
 R2 = (0.3e-3, 0.5e-3)          # disc radii [m]: ~150 discs in the 1 cm square below
 SQUARE = (0.01, 0.01)
@@ -234,3 +234,50 @@ def test_bad_coordination_target_names_the_field():
     with pytest.raises(InputError, match="tolerance"):
         specimen_for_coordination(4.0, "rectangle", SQUARE, *R2, tolerance=0.0)
 
+
+
+# ----------------------------------------------------------------------------- embedding
+def test_embedding_grows_the_radii_at_fixed_centres_and_bonds_the_new_pairs(rect):
+    """jdem.specimen.embed (002 §1.4's embedding): radii x 1.1 at the same centres
+    and densities, the porosity 1 - 1.21 x the solid fraction, bonds exactly the
+    pairs within 1.1 x the gap tolerance (brute force), N-bar up, the largest
+    overlap measured; x 1 rebonds the specimen as it was; bonds start at rest,
+    so the embedded assembly carries no force."""
+    import jdem
+
+    pos, rad = _arrays(rect)
+    same = embed(rect, 1.0)
+    np.testing.assert_array_equal(np.asarray(same.bonds.i), np.asarray(rect.bonds.i))
+    np.testing.assert_array_equal(np.asarray(same.bonds.j), np.asarray(rect.bonds.j))
+    assert same.coordination == rect.coordination
+
+    sp = embed(rect, 1.1)
+    np.testing.assert_array_equal(np.asarray(sp.particles.pos), np.asarray(rect.particles.pos))
+    np.testing.assert_allclose(np.asarray(sp.particles.radius), 1.1 * rad, rtol=1e-15)
+    np.testing.assert_allclose(np.asarray(sp.particles.mass),
+                               1.21 * np.asarray(rect.particles.mass), rtol=1e-12)
+    assert sp.porosity == pytest.approx(1 - 1.21 * (1 - rect.porosity), abs=1e-12)
+    assert sp.info["area_fraction"] == pytest.approx(1 - sp.porosity, abs=1e-12)
+    g = 1.1 * rect.info["gap_tolerance"]
+    assert sp.info["gap_tolerance"] == pytest.approx(g, rel=1e-12)
+    i, j, gap = _all_gaps(pos, 1.1 * rad)
+    ok = np.asarray(sp.bonds.valid)
+    bonded = set(zip(np.asarray(sp.bonds.i)[ok].tolist(), np.asarray(sp.bonds.j)[ok].tolist()))
+    assert bonded == {(a, c) for a, c, x in zip(i, j, gap) if x <= g}
+    assert sp.coordination == pytest.approx(2 * ok.sum() / len(rad))
+    assert sp.coordination > rect.coordination + 0.1
+    assert sp.info["max_overlap"] == pytest.approx(-gap.min(), rel=1e-9)
+    assert sp.info["max_overlap_ratio"] > 0.05
+    # at rest: 50 free steps (no walls, no load) move nothing
+    state, config = jdem.make_state(sp.particles, bonds=sp.bonds)
+    params = jdem.make_params(dim=2, dt=1e-8, kn=1e9, ks=1e9, friction=0.5,
+                              bond_youngs=30e9, bond_poisson=0.25, bond_tensile=1e7,
+                              bond_cohesion=1e7)
+    after = jdem.advance(state, params, config, 50)
+    assert float(np.max(np.abs(np.asarray(after.particles.vel)))) == 0.0
+    with pytest.raises(InputError, match="scale"):
+        embed(rect, 0.9)
+    with pytest.raises(InputError, match="scale"):
+        embed(rect, float("nan"))
+    with pytest.raises(InputError, match="Specimen"):
+        embed((rect.particles, rect.bonds), 1.1)

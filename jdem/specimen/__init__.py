@@ -108,7 +108,7 @@ from jdem.specimen.container import (  # noqa: F401
     Specimen,
 )
 from jdem.specimen.build import generate, specimen_for_coordination  # noqa: F401
-from jdem.specimen.edit import as_arrays, excavate, flatten_disc, remove, subset  # noqa: F401
+from jdem.specimen.edit import as_arrays, embed, excavate, flatten_disc, remove, subset  # noqa: F401
 from jdem.specimen.lattice import bonded_lattice, lattice_packing, lattice_sites  # noqa: F401
 from jdem.specimen.loads import face_particles, pressure_load, surface_load  # noqa: F401
 from jdem.specimen.plates import add_plates  # noqa: F401
