@@ -60,7 +60,8 @@ from jdem import InputError  # noqa: E402
 from jdem import lab  # noqa: E402
 from jdem.lab.energy import coordination_energy_ratio  # noqa: E402
 from jdem.materials import rock_params  # noqa: E402
-from jdem.specimen import add_plates, generate, specimen_for_coordination  # noqa: E402
+from jdem.specimen import add_plates, embed, generate, specimen_for_coordination  # noqa: E402
+from jdem.specimen.bonding import gap_for_coordination, near_pairs  # noqa: E402
 
 SEED_A, SEED_B = 60.5, -2.54
 FULL = dict(size=(0.10, 0.10), spreads=((0.6e-3, 0.85e-3), (0.45e-3, 1.0e-3)),
@@ -99,11 +100,13 @@ def main(argv=None):
     ap.add_argument("--max-gap", type=float, default=0.5,
                     help="largest bonding gap tolerance / mean radius (default 0.5); more "
                          "reaches a higher N-bar, like the seed's embedding")
-    ap.add_argument("--vary", choices=("gap", "size", "porosity"), default="gap",
+    ap.add_argument("--vary", choices=("gap", "size", "porosity", "embedding"), default="gap",
                     help="how N-bar is varied: the bonding gap tolerance to reach each "
                          "target (default); the disc size at a fixed gap of 0.2 mean radius "
                          "(the particle count, the seed's case 1); the packing's porosity at "
-                         "that gap (looser packings)")
+                         "that gap (looser packings); the embedding at that gap (every "
+                         "radius grown at fixed centres, jdem.specimen.embed: denser than "
+                         "touching discs, as the seed's blocks)")
     ap.add_argument("--loadings", nargs="+", choices=LOADINGS, default=list(LOADINGS))
     ap.add_argument("--sections", nargs="+", choices=SECTIONS, default=list(SECTIONS))
     args = ap.parse_args(argv)
@@ -141,6 +144,7 @@ def main(argv=None):
                 row = dict(spread=s_i, r_min=r_lo, r_max=r_hi, target=target,
                            way=args.vary, loading=loading, section=section,
                            n_bar=float(sp.coordination), n_particles=res["n_particles"],
+                           area_fraction=float(sp.info.get("area_fraction", 1.0 - sp.porosity)),
                            n_bonds=res["n_bonds"], porosity=float(sp.porosity),
                            gap_tolerance=float(sp.info["gap_tolerance"]), lam=res["lam"],
                            lam_core=res["lam_core"], L_p=res["L_p"], L_e=res["L_e"],
@@ -149,8 +153,8 @@ def main(argv=None):
                            seconds=time.time() - t2)
                 rows.append(row)
                 print(f"  r in [{r_lo * 1e3:g}, {r_hi * 1e3:g}] mm: N-bar "
-                      f"{row['n_bar']:.2f} ({n_rock(sp)} discs, porosity "
-                      f"{row['porosity']:.3f}), {loading:6s} {section:8s}: lambda "
+                      f"{row['n_bar']:.2f} ({n_rock(sp)} discs, area fraction "
+                      f"{row['area_fraction']:.3f}), {loading:6s} {section:8s}: lambda "
                       f"{row['lam']:.3f}, bulk {row['lam_core']:.3f}  "
                       f"({row['seconds']:.0f} s)", flush=True)
         print(f"    specimen done in {time.time() - t1:.0f} s", flush=True)
@@ -208,7 +212,8 @@ def main(argv=None):
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     hist = {k: np.asarray([r[k] for r in rows]) for k in
             ("n_bar", "lam", "lam_core", "L_p", "L_e", "L_p_loading", "E_macro",
-             "n_particles", "n_bonds", "porosity", "gap_tolerance", "r_min", "r_max",
+             "n_particles", "n_bonds", "porosity", "area_fraction", "gap_tolerance", "r_min",
+             "r_max",
              "steps")}
     hist["target"] = np.asarray([str(r["target"]) for r in rows], dtype="S24")
     hist["loading"] = np.asarray([r["loading"] for r in rows], dtype="S8")
@@ -235,7 +240,11 @@ def specimen_jobs(args, setup):
     spread scaled to mean radii ``SIZE_SCALES`` x its own (the particle count
     changes, the area fraction does not), bonded at a gap of ``FIXED_GAP`` mean
     radius.  ``--vary porosity``: the first spread packed at ``POROSITIES``,
-    bonded at that gap."""
+    bonded at that gap.  ``--vary embedding``: the first spread's densest packing
+    with every radius grown by ``EMBEDDINGS`` at fixed centres
+    (:func:`jdem.specimen.embed`), bonded at that gap of the grown mean radius;
+    with ``--targets``, grown by the last of ``EMBEDDINGS`` and bonded at the gap
+    (up to ``--max-gap`` grown mean radii) that brings N-bar to each target."""
     jobs = []
     if args.vary == "gap":
         for s_i, (r_lo, r_hi) in enumerate(setup["spreads"]):
@@ -253,6 +262,34 @@ def specimen_jobs(args, setup):
                 "rectangle", setup["size"], lo, hi, seed=args.seed,
                 gap_tolerance=FIXED_GAP * 0.5 * (lo + hi)))
             jobs.append((0, lo, hi, f"mean radius x {scale:g}", make))
+    elif args.vary == "embedding":
+        base = {}
+
+        def embedded(scale):
+            if "packing" not in base:      # one packing for every scale
+                base["packing"] = generate("rectangle", setup["size"], r_lo, r_hi,
+                                           seed=args.seed,
+                                           gap_tolerance=FIXED_GAP * 0.5 * (r_lo + r_hi))
+            return embed(base["packing"], scale)
+
+        if args.targets:       # the highest embedding, the gap chosen for each target
+            def embedded_for(target, scale=EMBEDDINGS[-1]):
+                grown = embedded(scale)
+                pos = np.asarray(grown.particles.pos, np.float64)
+                rad = np.asarray(grown.particles.radius, np.float64)
+                max_gap = args.max_gap * float(rad.mean())
+                gap, _, _, _ = gap_for_coordination(target, *near_pairs(pos, rad, max_gap),
+                                                    rad.size, "keep", max_gap)
+                return embed(base["packing"], scale, gap_tolerance=gap)
+
+            for target in args.targets:
+                s = EMBEDDINGS[-1]
+                jobs.append((0, r_lo * s, r_hi * s, target,
+                             lambda t=target: embedded_for(t)))
+            return jobs
+        for scale in EMBEDDINGS:
+            jobs.append((0, r_lo * scale, r_hi * scale, f"radii x {scale:g} (embedding)",
+                         lambda scale=scale: embedded(scale)))
     else:
         for phi in POROSITIES:
             make = (lambda phi=phi: generate(
@@ -264,6 +301,7 @@ def specimen_jobs(args, setup):
 
 SIZE_SCALES = (2.0, 1.4, 1.0, 0.7)   # mean radius 1.45, 1.0, 0.73, 0.5 mm at 10 cm
 POROSITIES = (0.19, 0.21, 0.23)
+EMBEDDINGS = (1.0, 1.05, 1.10, 1.15, 1.20)   # area fraction ~0.83 -> 1.19 (seed: 0.83-1.17)
 FIXED_GAP = 0.2                      # bonding gap / mean radius for --vary size, porosity
 
 
