@@ -149,7 +149,7 @@ def test_shear_box_follows_the_point_law_with_dilation():
     np.testing.assert_allclose(hist["dilation"], ref[:, 3], rtol=1e-9, atol=1e-18)
     assert ref[-1, 3] > 0.1 * overlap                     # the dilation mattered
     assert abs(hist["s"][-1]) > 2.0 * kn * overlap * MU   # held up by the dilation
-    _, force, _, _ = bk.contact_forces(end, params)
+    _, force, _, _ = jax.jit(bk.contact_forces)(end, params)    # compiled: faster than op by op
     assert float(force[1, 0]) == pytest.approx(-2.0 * ref[-1, 0], rel=1e-3)
 
 
@@ -163,7 +163,8 @@ def test_shear_force_is_differentiable_in_the_initial_friction():
         _, h = bk.rollout(state, p, config, 1, 1500, observe=_observe)
         return h["s"][-1]
 
-    g = float(jax.grad(force)(MU0))
+    g = float(jax.jit(jax.grad(force))(MU0))      # one program: eagerly, the forward and
+                                                   # backward passes compile apart
     e = 1e-6
     fd = (float(force(MU0 + e)) - float(force(MU0 - e))) / (2 * e)
     assert g == pytest.approx(fd, rel=1e-5) and g * float(force(MU0)) > 0

@@ -104,7 +104,10 @@ def _slide_on_incline(dim, slope_deg, friction_deg, steps=8000):
     dt = 0.05 * np.sqrt(m / kn)
     mu = np.tan(np.deg2rad(friction_deg))
     params = jdem.make_params(dim=dim, kn=kn, ks=kn, friction=mu, dt=dt, gravity=grav)
-    state, cfg = jdem.make_state(p, walls=walls)
+    # the search grid of a particle at the origin for every slope (one particle: no
+    # pairs to find), so that the runs share one compiled chunk
+    cfg = jdem.make_config(jdem.make_particles([np.zeros(dim)], [r]))
+    state, cfg = jdem.make_state(p, cfg, walls=walls)
     down = np.zeros(dim)
     down[0], down[1] = -np.cos(th), -np.sin(th)
 

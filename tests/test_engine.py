@@ -220,22 +220,29 @@ def test_averaged_stress_of_a_compressed_square_lattice():
 
 
 # ----------------------------------------------------------------------------- gradients
-def _oblique_collision_loss(params):
+def _oblique_collision():
     r = 0.01
     p = jdem.make_particles([[0.0, 0.0], [2 * r + 1e-5, 0.004]], [r, r],
                             vel=[[0.4, 0.0], [-0.4, 0.0]])
     state, cfg = jdem.make_state(p, skin=2e-3)
-    final, hist = jdem.rollout(state, params, cfg, 40, 50, _positions)
-    return jnp.sum(final.particles.vel[1] ** 2) + 1e3 * final.particles.pos[1, 1]
+
+    def loss(params):
+        final, hist = jdem.rollout(state, params, cfg, 40, 50, _positions)
+        return jnp.sum(final.particles.vel[1] ** 2) + 1e3 * final.particles.pos[1, 1]
+
+    return loss
 
 
 def test_gradient_through_rollout_matches_finite_differences():
     params = jdem.make_params(dim=2, kn=1e5, ks=5e4, friction=0.3, dt=2e-6, local_damping=0.05)
-    g = jax.grad(_oblique_collision_loss)(params)
+    loss = _oblique_collision()
+    # jitted: run eagerly, every rollout would trace and compile its scans again
+    g = jax.jit(jax.grad(loss))(params)
+    loss = jax.jit(loss)
     for field, h in (("kn", 1.0), ("friction", 1e-5), ("local_damping", 1e-6)):
         base = getattr(params, field)
-        up = _oblique_collision_loss(params._replace(**{field: base + h}))
-        down = _oblique_collision_loss(params._replace(**{field: base - h}))
+        up = loss(params._replace(**{field: base + h}))
+        down = loss(params._replace(**{field: base - h}))
         fd = (up - down) / (2 * h)
         ad = jnp.sum(getattr(g, field))
         assert np.isfinite(ad)
