@@ -533,10 +533,29 @@ def _set_aside(setup: Setup, params, k0, bad, failures, raw, parts, new_state, c
     return new_state
 
 
+@functools.partial(jax.jit, static_argnames=("plan",))
+def _derived_axial_stress(raw, frame, plan: Plan):
+    return plan.test.derive(raw, frame, plan).get("axial_stress")
+
+
 def _axial_stress(parts, setup):
-    hist = _finish(_concat(parts), setup.frame, setup.plan)
-    s = hist.get("axial_stress")
-    return None if s is None else np.asarray(s)
+    """The axial stress of the records run so far (members first), or None for a
+    test without one.  Derived by one compiled program for the whole run: the
+    records are padded to the plan's length with the last one (the derivation
+    is record by record, so the padding does not change the records before it)
+    and the padded part is cut off.  Derived op by op on the growing history,
+    every chunk compiled each operation anew (14 s of a 67 s precision test)."""
+    raw = _concat(parts)
+    n = next(iter(raw.values())).shape[0]
+    total = max(setup.plan.n_records, n)
+    if total > n:
+        raw = {k: np.concatenate([v, np.repeat(v[-1:], total - n, axis=0)], axis=0)
+               for k, v in raw.items()}
+    s = _derived_axial_stress(raw, setup.frame, setup.plan)
+    if s is None:
+        return None
+    s = np.asarray(s)[:max(n - setup.plan.preload_records, 0)]
+    return np.swapaxes(s, 0, 1) if setup.plan.batched else s
 
 
 def _check_timestep(setup: Setup, params, failures):
