@@ -10,9 +10,6 @@ from jdem import blocks as bk
 from jdem.blocks import cases, joint
 
 G = 9.81
-#: the joint forces at a state, compiled: run op by op, the detection and the
-#: joint law compile some 150 small programs of their own (~6 s on two cores)
-contact_forces = jax.jit(bk.contact_forces)
 
 
 def _base():
@@ -179,7 +176,7 @@ def test_stack_settles_with_base_reaction_equal_to_weight():
                                     (-0.2, 0.703, 0.3, 0.5)])
     blocks = state.blocks
     state, hist = bk.run(state, p, config, 20000, record_every=500, progress=False)
-    _, force, _, _ = contact_forces(state, p)
+    _, force, _, _ = bk.contact_forces(state, p)
     weight = float(jnp.sum(blocks.mass[1:])) * G
     assert float(force[0, 1]) == pytest.approx(-weight, rel=1e-2)
     assert abs(float(force[0, 0])) < 1e-3 * weight
@@ -351,7 +348,7 @@ def test_readme_block_example_runs_and_settles():
     scope = {}
     exec(compile(code, "README.md (blocks)", "exec"), scope)
     state, params, blocks = scope["state"], scope["params"], scope["blocks"]
-    _, force, _, _ = contact_forces(state, params)
+    _, force, _, _ = bk.contact_forces(state, params)
     weight = float(jnp.sum(blocks.mass[1:])) * G
     assert -float(force[0, 1]) == pytest.approx(weight, rel=2e-2)
 
@@ -483,7 +480,7 @@ def test_contact_states_tell_sticking_from_sliding_and_are_drawn(tmp_path, slope
 
     state, p, config = _incline(0.5, 0.5, slope, 30.0)
     state, _ = bk.run(state, p, config, 400, record_every=400, progress=False)
-    _, _, _, info = bk.contact_forces(state, p)   # op by op, as plot_blocks below: it reuses them
+    _, _, _, info = bk.contact_forces(state, p)
     kind = contact_states(info)
     assert sorted(kind[kind >= 0].tolist()) == [expect, expect]
     plot_blocks(state, p, tmp_path / "contacts.png", color="contacts")
@@ -628,7 +625,7 @@ def test_face_stiffness_scales_with_the_contact_length():
         p = p._replace(dt=jnp.asarray(bk.recommended_timestep(blocks, p)))
         state, config = bk.make_state(blocks)
         state, _ = bk.run(state, p, config, 6000, record_every=6000, progress=False)
-        _, force, _, info = contact_forces(state, p)
+        _, force, _, info = bk.contact_forces(state, p)
         row = int(np.flatnonzero(np.asarray(info.active).any(axis=1))[0])
         fn, overlap = np.asarray(info.fn[row]), np.asarray(info.overlap[row])
         np.testing.assert_allclose(fn / overlap, k_face * length / 2, rtol=1e-6)
@@ -644,7 +641,7 @@ def test_face_stiffness_scales_with_the_contact_length():
     square[:, 1] -= square[:, 1].min() + 1e-4
     blocks = bk.make_blocks([base, square], 2500.0, fixed=[0])
     state, _ = bk.make_state(blocks)
-    _, _, _, info = contact_forces(state, p)
+    _, _, _, info = bk.contact_forces(state, p)
     act = np.asarray(info.active)
     assert act.sum() == 1
     assert float(np.asarray(info.fn)[act][0]) == pytest.approx(kn * 1e-4, rel=1e-6)

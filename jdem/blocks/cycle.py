@@ -242,6 +242,7 @@ class ContactForces(NamedTuple):
     overlap: jnp.ndarray
 
 
+@functools.partial(jax.jit, static_argnames=("sharp_corners", "coulomb_only"))
 def contact_forces(state: BlockState, params: BlockParams, *, sharp_corners=False,
                    coulomb_only=False):
     """Joint forces of the listed pairs and their sums on the blocks.
@@ -253,6 +254,8 @@ def contact_forces(state: BlockState, params: BlockParams, *, sharp_corners=Fals
     of a step even at radius 0, which a traced radius cannot skip).
     ``coulomb_only=True`` (static) likewise skips the continuously yielding law,
     which then must be unused (``cy_friction0`` all 0; :func:`run` checks).
+    Jitted: called on its own (a plot, a test), op by op it compiled some 150
+    small programs; inside a step it is inlined.
     """
     b, c = state.blocks, state.contacts
     g = detect.pair_geometry(b, c.i, c.j, 0.0 if sharp_corners else params.corner_radius)
