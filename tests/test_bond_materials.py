@@ -187,6 +187,9 @@ def test_plates_are_bonded_lattices_on_the_faces(block):
     assert plate_plate.sum() == 2 * (4 * n - 5)
     with pytest.raises(InputError, match="rows"):
         add_plates(block, rows=0)
+    broken = block._replace(bonds=block.bonds._replace(broken=block.bonds.broken.at[0].set(True)))
+    with pytest.raises(InputError, match="add_plates needs a fresh specimen"):
+        add_plates(broken)
     # the lab tests read strains over the rock: the platen distance less the plates
     setup = lab.UCS.setup(pl, rock_params(2, plate_youngs=200e9), precision="float64")
     (_, y_lo), (_, y_hi) = block.box

@@ -281,3 +281,7 @@ def test_embedding_grows_the_radii_at_fixed_centres_and_bonds_the_new_pairs(rect
         embed(rect, float("nan"))
     with pytest.raises(InputError, match="Specimen"):
         embed((rect.particles, rect.bonds), 1.1)
+    loaded = rect._replace(bonds=rect.bonds._replace(
+        normal_force=rect.bonds.normal_force.at[0].set(1.0)))
+    with pytest.raises(InputError, match="embed needs a fresh specimen"):
+        embed(loaded, 1.1)

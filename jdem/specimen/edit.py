@@ -28,6 +28,14 @@ def as_arrays(specimen):
     return particles, bonds, {}
 
 
+def require_fresh(bonds, who):
+    """InputError naming ``who`` unless every valid bond is intact and at rest:
+    the edits that rebuild bonds (plates, embedding) start them at rest."""
+    if np.any(np.asarray(bonds.broken)[np.asarray(bonds.valid)]) or \
+            np.any(np.asarray(bonds.normal_force) != 0):
+        raise InputError(f"{who} needs a fresh specimen (its bonds at rest, none broken)")
+
+
 def subset(particles, bonds, keep):
     """The particles with ``keep`` (N,) true and the bonds between them, renumbered.
 
@@ -152,9 +160,7 @@ def embed(specimen, scale, *, gap_tolerance=None):
     if s < 1.0:
         raise InputError(f"scale must be >= 1 (embedding grows the radii), got {scale!r}")
     particles, bonds, info = as_arrays(specimen)
-    if np.any(np.asarray(bonds.broken)[np.asarray(bonds.valid)]) or \
-            np.any(np.asarray(bonds.normal_force) != 0):
-        raise InputError("embed needs a fresh specimen (its bonds at rest, none broken)")
+    require_fresh(bonds, "embed")
     valid = np.asarray(particles.valid, bool)
     pos = np.asarray(particles.pos, np.float64)[valid]
     rad = np.asarray(particles.radius, np.float64)[valid]

@@ -31,7 +31,7 @@ import numpy as np
 from jdem.bond import bonds_for_pairs, create_bonds
 from jdem.specimen.bonding import near_pairs
 from jdem.specimen.container import Specimen
-from jdem.specimen.edit import as_arrays
+from jdem.specimen.edit import as_arrays, require_fresh
 from jdem.state import make_particles
 from jdem.validate import InputError
 
@@ -95,9 +95,7 @@ def add_plates(specimen, *, rows=2, radius=None, material=1, density=STEEL_DENSI
         raise InputError(f"rows must be >= 1, got {rows!r}")
     if int(material) < 1:
         raise InputError(f"material must be >= 1 (0 is the rock), got {material!r}")
-    if np.any(np.asarray(bonds.broken)[np.asarray(bonds.valid)]) or \
-            np.any(np.asarray(bonds.normal_force) != 0):
-        raise InputError("add_plates needs a fresh specimen (its bonds at rest, none broken)")
+    require_fresh(bonds, "add_plates")
     pos, rad = pos[valid], rad[valid]
     mat = np.asarray(particles.material)[valid]
     r_mean = float(np.mean(rad))
