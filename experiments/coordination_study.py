@@ -39,6 +39,7 @@ specimen's figures; ``jdem.io.save_run``) and ``summary.json`` to ``--out``.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import pathlib
@@ -263,24 +264,22 @@ def specimen_jobs(args, setup):
                 gap_tolerance=FIXED_GAP * 0.5 * (lo + hi)))
             jobs.append((0, lo, hi, f"mean radius x {scale:g}", make))
     elif args.vary == "embedding":
-        base = {}
+        @functools.cache
+        def packing():                     # one packing for every scale
+            return generate("rectangle", setup["size"], r_lo, r_hi, seed=args.seed,
+                            gap_tolerance=FIXED_GAP * 0.5 * (r_lo + r_hi))
 
         def embedded(scale):
-            if "packing" not in base:      # one packing for every scale
-                base["packing"] = generate("rectangle", setup["size"], r_lo, r_hi,
-                                           seed=args.seed,
-                                           gap_tolerance=FIXED_GAP * 0.5 * (r_lo + r_hi))
-            return embed(base["packing"], scale)
+            return embed(packing(), scale)
 
         if args.targets:       # the highest embedding, the gap chosen for each target
             def embedded_for(target, scale=EMBEDDINGS[-1]):
-                grown = embedded(scale)
-                pos = np.asarray(grown.particles.pos, np.float64)
-                rad = np.asarray(grown.particles.radius, np.float64)
+                pos = np.asarray(packing().particles.pos, np.float64)
+                rad = scale * np.asarray(packing().particles.radius, np.float64)
                 max_gap = args.max_gap * float(rad.mean())
                 gap, _, _, _ = gap_for_coordination(target, *near_pairs(pos, rad, max_gap),
                                                     rad.size, "keep", max_gap)
-                return embed(base["packing"], scale, gap_tolerance=gap)
+                return embed(packing(), scale, gap_tolerance=gap)
 
             for target in args.targets:
                 s = EMBEDDINGS[-1]
