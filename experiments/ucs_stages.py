@@ -5,6 +5,7 @@ mode (Fig 12), per fracture strain kappa, beside the seed's statements.
     python experiments/ucs_stages.py                        # kappa 0, 0.3 %, 2.4 %
     python experiments/ucs_stages.py --kappas 0 0.001 0.003 0.006 0.012 0.024 --seed 3
     python experiments/ucs_stages.py --plates --out experiments/results/ucs_stages_plates
+    python experiments/ucs_stages.py --full --out experiments/results/ucs_stages_full
 
 One packing of the reduced study (``experiments/ucs_seed_bands.py``: a 1.8 cm x
 3.6 cm rectangle, r in [0.2, 0.35] mm, N-bar 5, the seed's material, local damping
@@ -15,6 +16,10 @@ Stages from :func:`jdem.lab.curve_stages`.  The seed (13,097 discs, 5 cm x
 non-linear rise is about 20 % of the linear one at kappa = 0 and more than twice
 it at 2.4 %; the residual stage sits at 0.4-2 MPa; with small kappa the failure
 mixes tension and shear, with large kappa it is compression-shear.
+``--full`` runs the seed's specimen instead: 5 cm x 10 cm, r in [0.228, 0.422] mm
+(13,097 discs at the seed's density, as ``experiments/ucs_fracture_strain.py``),
+still with the 3 nm platen step (the strain per step is then 2.8 x smaller than
+the reduced study's).
 
 Writes ``experiments/results/ucs_stages/``: ``ucs_stages.md`` (the table),
 ``.json``, ``.h5`` (curves and counts; reopen with ``jdem.io.load_run``) and
@@ -42,6 +47,8 @@ from jdem.specimen import add_plates, generate  # noqa: E402
 SIZE = (0.018, 0.036)
 RADII = (0.2e-3, 0.35e-3)
 STEP = 3e-9
+FULL_SIZE = (0.05, 0.10)                  # the seed's UCS specimen (002 §2.1)
+FULL_RADII = (0.228e-3, 0.422e-3)         # 13,097 discs in it, as the seed's
 OUT = pathlib.Path(__file__).parent / "results" / "ucs_stages"
 COLUMNS = ("linear_end_stress", "first_break_stress", "peak_stress", "peak_strain",
            "rise_ratio", "descent_modulus", "residual_stress", "n_tension_at_peak",
@@ -53,13 +60,17 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=2)
     ap.add_argument("--kappas", type=float, nargs="+", default=[0.0, 3e-3, 2.4e-2])
     ap.add_argument("--out", type=pathlib.Path, default=OUT)
+    ap.add_argument("--full", action="store_true",
+                    help="the seed's 5 cm x 10 cm specimen (~13,000 discs) instead of the "
+                         "reduced 1.8 cm x 3.6 cm one")
     ap.add_argument("--plates", action="store_true",
                     help="load through steel plates bonded to the faces (jdem.specimen."
                          "add_plates, 002 Fig 7) instead of rigid frictionless platens")
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
-    spec = generate("rectangle", SIZE, *RADII, seed=a.seed, target_coordination=5.0)
+    size, radii = (FULL_SIZE, FULL_RADII) if a.full else (SIZE, RADII)
+    spec = generate("rectangle", size, *radii, seed=a.seed, target_coordination=5.0)
     n = int(np.sum(np.asarray(spec.particles.valid)))
     n_bonds = int(np.sum(np.asarray(spec.bonds.valid)))
     if a.plates:
@@ -68,7 +79,10 @@ def main(argv=None):
     setup = lab.UCS.setup([spec] * len(a.kappas), params,
                           platen_step=STEP, max_strain=4e-3, damping=lab.local(0.8),
                           record_every=50)
-    res = lab.run(setup, stop_stress_ratio=0.15, progress=True, warn_dynamic=False)
+    # saved every minute; a run interrupted (Ctrl-C) continues from it when started again
+    ckpt = a.out / "ucs_stages.checkpoint.h5"
+    res = lab.run(setup, stop_stress_ratio=0.15, progress=True, warn_dynamic=False,
+                  checkpoint=ckpt, resume=ckpt if ckpt.exists() else None)
     run_s = time.time() - t0
     st = lab.curve_stages(res.history)
     rows = [dict(kappa=k, **{c: float(np.asarray(st[c])[m]) for c in COLUMNS})
@@ -84,7 +98,7 @@ def main(argv=None):
                 attrs={"kappas": list(a.kappas), "seed": a.seed, "command": command})
     md = ["# Stages of the UCS curve and breaks by mode (002 §2.2-2.3, Fig 10, 12, 15)", "",
           f"{out['date']}, `{command}`, float64, 2-core CPU; packing {a.seed}: {n} discs, "
-          f"{n_bonds} bonds; {run_s:.0f} s."
+          f"{n_bonds} bonds, {size[0] * 100:g} cm x {size[1] * 100:g} cm; {run_s:.0f} s."
           + (f" Loaded through bonded steel plates ({spec.info['n_plate_discs']} discs; the "
              "break counts include the rock discs' bonds to the plates)." if a.plates else ""),
           "",
