@@ -192,6 +192,27 @@ def rollout(state: State, params: Params, config: Config, n_records: int, record
     return jax.lax.scan(block, state, None, length=n_records)
 
 
+def scan_first(body: Callable, carry, xs, n_run=None):
+    """``jax.lax.scan(body, carry, xs)`` in which only the first ``n_run`` items of
+    ``xs`` are run (``n_run`` a traced int; ``None``: all of them).  The others
+    leave the carry alone and give zero outputs, so one compiled program serves
+    every ``n_run`` up to the length of ``xs``: a host loop's last, shorter chunk
+    reuses the program of its full ones instead of compiling its own."""
+    if n_run is None:
+        return jax.lax.scan(body, carry, xs)
+
+    def skip(c, x):
+        shapes = jax.eval_shape(body, c, x)[1]
+        return c, jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
+
+    def maybe(c, item):
+        index, x = item
+        return jax.lax.cond(index < n_run, body, skip, c, x)
+
+    n = jax.tree_util.tree_leaves(xs)[0].shape[0]
+    return jax.lax.scan(maybe, carry, (jnp.arange(n), xs))
+
+
 class NeighbourListOverflow(RuntimeError):
     """The fixed-capacity neighbour list overflowed inside a pure rollout."""
 

@@ -336,6 +336,25 @@ def test_block_run_restarts_bit_for_bit_from_hdf5(tmp_path):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+def test_host_run_is_the_rollout_and_its_short_last_chunk_compiles_nothing_new():
+    """A run of 53 records goes as chunks of 50 and 3: the 3 run in the program of
+    the 50 (records past ``n_run`` skipped), so the host loop compiles one chunk
+    program, and its history and final state are those of one 53-record rollout,
+    bit for bit."""
+    state, p, config = _incline(0.5, 0.5, 35.0, 30.0)
+    final, hist = bk.run(state, p, config, 53 * 7, record_every=7, progress=False)
+    before = bk.rollout._cache_size()
+    final2, hist2 = bk.run(state, p, config, 54 * 7, record_every=7, progress=False)
+    assert bk.rollout._cache_size() == before        # 50 + 4 reuses the same program
+    whole, ref = bk.rollout(state, p, config, 53, 7)
+    assert hist["pos"].shape[0] == 53 and hist2["pos"].shape[0] == 54
+    for key in ref:
+        np.testing.assert_array_equal(hist[key], np.asarray(ref[key]))
+    for a, b in zip(jax.tree_util.tree_leaves(final), jax.tree_util.tree_leaves(whole)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert int(final2.step) == 54 * 7
+
+
 def test_readme_block_example_runs_and_settles():
     """The README's block example, as written: it runs, and the floor ends up
     carrying the mass's weight (to 2 %, still settling after 30,000 steps)."""

@@ -40,7 +40,7 @@ from jdem.blocks.geometry import world_vertices
 from jdem.kinematics import cross_r_f, cross_w_r
 from jdem.contact import (dashpot, harmonic_mix, normal_law, pair_friction, pair_property,
                           tangential_update)
-from jdem.simulate import SimulationDiverged
+from jdem.simulate import SimulationDiverged, scan_first
 from jdem.state import Config, Params, State
 from jdem.validate import InputError, n_materials
 
@@ -208,11 +208,12 @@ def default_observe(model: Coupled) -> dict:
                                              "sharp_corners", "coulomb_only"))
 def rollout(model: Coupled, params: Params, block_params: cycle.BlockParams, config: Config,
             block_config: Config, n_records: int, record_every: int, observe=None,
-            block_material=0, sharp_corners=False, coulomb_only=False):
+            block_material=0, sharp_corners=False, coulomb_only=False, n_run=None):
     """``n_records`` x ``record_every`` coupled steps as a pure function (jit, vmap,
     grad).  ``observe(model) -> dict`` is recorded after each block of steps
     (default :func:`default_observe`), with ``overflowed``: whether either
     neighbour list (the discs' or the blocks') has overflowed by then.
+    ``n_run`` as in :func:`jdem.blocks.cycle.rollout`.
     Returns ``(model, history)``, each record stacked on a leading axis."""
     observe = observe or default_observe
 
@@ -225,7 +226,7 @@ def rollout(model: Coupled, params: Params, block_params: cycle.BlockParams, con
                              | neighbors.overflowed(m.blocks.contacts, block_config))
         return m, rec
 
-    return jax.lax.scan(jax.checkpoint(chunk), model, None, length=n_records)
+    return scan_first(jax.checkpoint(chunk), model, jnp.arange(n_records), n_run)
 
 
 def contact_limit(model: Coupled, params: Params, config: Config, block_material=0):
@@ -296,11 +297,11 @@ def run(model: Coupled, params: Params, block_params: cycle.BlockParams, config:
     coulomb_only = not bool(np.any(np.asarray(block_params.cy_friction0) > 0))
     dt = float(params.dt)
 
-    def chunk(k, records):
+    def chunk(n, k, records):
         nonlocal model, config, block_config
-        new, hist = rollout(model, params, block_params, config, block_config, k,
+        new, hist = rollout(model, params, block_params, config, block_config, n,
                             int(record_every), observe, int(block_material), sharp,
-                            coulomb_only)
+                            coulomb_only, jnp.int32(k))
         if bool(neighbors.overflowed(new.discs.contacts, config)):
             contacts, config = neighbors.reallocate(
                 model.discs.contacts, model.discs.particles, config, model.discs.bonds)

@@ -47,7 +47,7 @@ from jdem import damping, neighbors
 from jdem.blocks import detect, joint
 from jdem.blocks.geometry import Blocks, signed_area, world_vertices
 from jdem.kinematics import cross_r_f, cross_w_r, segment_add
-from jdem.simulate import SimulationDiverged
+from jdem.simulate import SimulationDiverged, scan_first
 from jdem.state import Config, Contacts
 from jdem.timestep import damped_limit
 from jdem.validate import InputError
@@ -437,7 +437,8 @@ def recommended_timestep(blocks: Blocks, params: BlockParams, safety=0.5) -> flo
 @functools.partial(jax.jit, static_argnames=("config", "n_records", "record_every", "observe",
                                              "sharp_corners", "coulomb_only"))
 def rollout(state: BlockState, params: BlockParams, config: Config, n_records: int,
-            record_every: int, observe=None, sharp_corners=False, coulomb_only=False):
+            record_every: int, observe=None, sharp_corners=False, coulomb_only=False,
+            n_run=None):
     """``n_records`` x ``record_every`` steps as a pure function (jit, vmap, grad).
 
     observe        ``observe(state, params) -> dict`` recorded after each block of
@@ -446,6 +447,9 @@ def rollout(state: BlockState, params: BlockParams, config: Config, n_records: i
                    ``params.corner_radius`` is 0 (:func:`run` checks and sets it)
     coulomb_only   skip the continuously yielding law; only when
                    ``params.cy_friction0`` is all 0 (:func:`run` checks and sets it)
+    n_run          run only the first ``n_run`` records (traced int; the others
+                   are zeros), so that :func:`run`'s last, shorter chunk reuses
+                   the program of its full ones (:func:`jdem.simulate.scan_first`)
     Returns ``(state, history)`` with each record stacked on a leading axis.
     """
     observe = observe or default_observe
@@ -456,7 +460,7 @@ def rollout(state: BlockState, params: BlockParams, config: Config, n_records: i
                                                 coulomb_only), s)
         return s, observe(s, params)
 
-    return jax.lax.scan(jax.checkpoint(chunk), state, None, length=n_records)
+    return scan_first(jax.checkpoint(chunk), state, jnp.arange(n_records), n_run)
 
 
 def default_observe(state: BlockState, params: BlockParams) -> dict:
@@ -492,10 +496,10 @@ def run(state: BlockState, params: BlockParams, config: Config, n_steps: int, *,
     sharp = not bool(np.any(np.asarray(params.corner_radius) > 0))
     coulomb_only = not bool(np.any(np.asarray(params.cy_friction0) > 0))
 
-    def chunk(k, records):
+    def chunk(n, k, records):
         nonlocal state, config
-        new, hist = rollout(state, params, config, k, int(record_every), observe, sharp,
-                            coulomb_only)
+        new, hist = rollout(state, params, config, n, int(record_every), observe, sharp,
+                            coulomb_only, jnp.int32(k))
         if bool(neighbors.overflowed(new.contacts, config)):
             contacts, config = neighbors.reallocate(
                 state.contacts, detect.bounding_circles(state.blocks), config)
@@ -531,10 +535,12 @@ def run_in_chunks(chunk, n_steps, record_every, desc, progress):
     """The host loop of :func:`run` and :func:`jdem.blocks.coupling.run`: records of
     ``record_every`` steps, at most 50 per chunk, with a progress bar.
 
-    ``chunk(k, records)`` advances the caller's state by ``k`` records and returns
-    their history, or ``None`` when the chunk must run again (a list was grown);
-    ``records`` are the chunks' histories so far (for the error it may raise to
-    stop).  Returns ``(the chunks' histories as NumPy, wall time [s])``."""
+    ``chunk(n, k, records)`` advances the caller's state by ``k <= n`` records and
+    returns a history of ``n`` records of which the first ``k`` are real (every
+    chunk has the same ``n``, so that one compiled program serves the whole run),
+    or ``None`` when the chunk must run again (a list was grown); ``records`` are
+    the chunks' histories so far (for the error it may raise to stop).  Returns
+    ``(the chunks' histories as NumPy, wall time [s])``."""
     n_records = -(-int(n_steps) // int(record_every))
     per_chunk = max(1, min(n_records, 50))
     records = []
@@ -547,10 +553,10 @@ def run_in_chunks(chunk, n_steps, record_every, desc, progress):
         done = 0
         while done < n_records:
             k = min(per_chunk, n_records - done)
-            hist = chunk(k, records)
+            hist = chunk(per_chunk, k, records)
             if hist is None:
                 continue
-            records.append(jax.tree_util.tree_map(np.asarray, hist))
+            records.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:k], hist))
             done += k
             if bar is not None:
                 bar.update(k * record_every)

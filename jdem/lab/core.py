@@ -44,7 +44,7 @@ from jdem.lab import pattern, summary
 from jdem.lab.checkpoint import load_checkpoint, save_checkpoint
 from jdem.batch import broadcast_batch, is_batched, member, put_member
 from jdem.simulate import (MemberFailure, SimulationDiverged, advance, blank_member_records,
-                           check_current_step, diagnose, inert, rollout)
+                           check_current_step, diagnose, inert, rollout, scan_first)
 from jdem.state import Config, Params, State
 from jdem.timestep import check_timestep
 from jdem.validate import InputError, check_params, require_int
@@ -288,16 +288,7 @@ def record_chunk(plan: Plan, n: int):
     a run's last, shorter chunk and the rerun up to a peak reuse the program of
     its full chunks instead of compiling one of their own."""
     def records(state, params, frame, k0, n_run):
-        block = _block(plan, params, frame)
-
-        def skip(s, k):   # past the end of this call: no steps, an empty record
-            shapes = jax.eval_shape(block, s, k)[1]
-            return s, jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
-
-        def maybe(s, k):
-            return jax.lax.cond(k < k0 + n_run, block, skip, s, k)
-
-        return jax.lax.scan(maybe, state, k0 + jnp.arange(n))
+        return scan_first(_block(plan, params, frame), state, k0 + jnp.arange(n), n_run)
 
     jitted = jax.jit(records)
 
