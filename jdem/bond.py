@@ -28,9 +28,9 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from jdem.kinematics import (components, cross_r_f, dot, floored_norm, project_tangent,
-                             relative_velocity, rotate_into_plane, rows, safe_norm, scale,
-                             segment_add, unit)
+from jdem.kinematics import (components, computed_once, cross_r_f, dot, floored_norm,
+                             project_tangent, relative_velocity, rotate_into_plane, rows,
+                             safe_norm, scale, segment_add, unit)
 from jdem.state import Bonds, Particles, Params, aligned_rows, empty_bonds
 
 Array = jnp.ndarray
@@ -265,6 +265,54 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     met, ``moment_lost`` is set for good and the moments are zero from this very
     step on, so a moment beyond the criterion is never transmitted.
     """
+    # The law row by row, into memory (jdem.kinematics.computed_once, at every
+    # size): otherwise, under jax.jvp, XLA:CPU fuses the tangent of the whole law
+    # into the concatenation that stacks the shear components and evaluates it
+    # element by element, so that a Jacobian by forward mode cost 8.9 forward runs
+    # per tangent instead of 2.9 (experiments/jvp_profile.py, jacobian_cost.py).
+    law = computed_once(lambda: _bond_law(bonds, particles, params, dim, step, section),
+                        jnp.asarray(step) >= 0, min_rows=0)
+    valid, i, j = bonds.valid, bonds.i, bonds.j
+    f1, t1, t2 = law.f1, law.t1, law.t2
+    # one scatter per side and quantity (padding rows left out)
+    n_part = particles.pos.shape[0]
+    add = lambda rows, index: segment_add(rows, index, n_part, where=valid)
+    force = add(f1, i) + add(tuple(-f for f in f1), j)
+    torque = add(t1, i) + add(t2, j)
+    stack = lambda v: jnp.stack(v, axis=-1) if isinstance(v, tuple) else v
+    new_bonds = bonds._replace(
+        normal_force=law.fn, shear_force=stack(law.fs), twist=law.twist, bend=stack(law.bend),
+        u_n=law.u_n, u_s=stack(law.u_s), alpha=law.alpha, beta=law.beta,
+        moment_lost=law.moment_lost, broken=law.broken, break_mode=law.break_mode,
+        break_step=law.break_step)
+    return new_bonds, force, torque
+
+
+class _BondLaw(NamedTuple):
+    """The per-row results of :func:`_bond_law`: the new bond fields (vectors as
+    component tuples), the force ``f1`` on particle 1 and the torques ``t1``,
+    ``t2`` on particles 1 and 2, zero on invalid rows."""
+
+    fn: Array
+    fs: tuple
+    twist: Array
+    bend: Array | tuple
+    u_n: Array
+    u_s: tuple
+    alpha: Array
+    beta: Array
+    moment_lost: Array
+    broken: Array
+    break_mode: Array
+    break_step: Array
+    f1: tuple
+    t1: Array | tuple
+    t2: Array | tuple
+
+
+def _bond_law(bonds: Bonds, particles: Particles, params: Params, dim: int, step,
+              section: str) -> _BondLaw:
+    """002 eq 3-13 on every row (see :func:`bond_forces`)."""
     valid = bonds.valid
     i, j = bonds.i, bonds.j
     mat = bond_material(bonds, particles, params)
@@ -397,18 +445,9 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     else:
         t1 = cross_r_f(r1, f1) + bend
         t2 = cross_r_f(r2, tuple(-f for f in f1)) - bend
-    n_part = particles.pos.shape[0]
-    add = lambda rows, index: segment_add(rows, index, n_part, where=valid)  # padding rows out
-    force = add(f1, i) + add(tuple(-f for f in f1), j)
-    torque = add(zv(t1), i) + add(zv(t2), j)
-    stack = lambda v: jnp.stack(v, axis=-1) if isinstance(v, tuple) else v
-
-    new_bonds = bonds._replace(
-        normal_force=fn, shear_force=stack(fs), twist=twist, bend=stack(bend), u_n=z(u_n),
-        u_s=stack(zv(u_s)),
-        alpha=alpha, beta=beta, moment_lost=moment_lost, broken=broken,
-        break_mode=break_mode, break_step=break_step)
-    return new_bonds, force, torque
+    return _BondLaw(fn=fn, fs=fs, twist=twist, bend=bend, u_n=z(u_n), u_s=zv(u_s), alpha=alpha,
+                    beta=beta, moment_lost=moment_lost, broken=broken, break_mode=break_mode,
+                    break_step=break_step, f1=f1, t1=zv(t1), t2=zv(t2))
 
 
 def damage(bonds: Bonds) -> dict:

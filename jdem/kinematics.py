@@ -172,7 +172,7 @@ def segment_add(values, index, n, where=None):
 COMPUTED_ONCE_MIN_ROWS = 16384  # see computed_once
 
 
-def computed_once(fn, always_true):
+def computed_once(fn, always_true, min_rows=None):
     """``fn()``, evaluated as a computation of its own so that its outputs are
     arrays in memory, each computed once.
 
@@ -186,17 +186,20 @@ def computed_once(fn, always_true):
     a batched predicate turns the conditional into a select (both branches are
     evaluated, the zero one costs nothing); gradients pass through ``fn``.
 
-    Small problems (outputs below ``COMPUTED_ONCE_MIN_ROWS`` rows) call ``fn``
-    directly: there the conditional's fixed cost per step outweighs the
-    recomputation (a 1,047-disc UCS forward run took 2.76 s with it, 2.40 s
-    without).  So do other backends than the CPU: this works around XLA:CPU's
-    fusion, and on a GPU a conditional may wait for the host to read its
-    predicate (the GPU figures in the README were measured without it).  The
-    results are the same either way.
+    Small problems (outputs below ``min_rows`` rows, default
+    ``COMPUTED_ONCE_MIN_ROWS``) call ``fn`` directly: there the conditional's
+    fixed cost per step outweighs the recomputation (the contact law of a
+    1,047-disc UCS forward run took 2.76 s with it, 2.40 s without);
+    ``min_rows=0`` keeps the conditional at every size (the bond law, see
+    :func:`jdem.bond.bond_forces`).  Other backends than the CPU call ``fn``
+    directly too: this works around XLA:CPU's fusion, and on a GPU a conditional
+    may wait for the host to read its predicate (the GPU figures in the README
+    were measured without it).  The results are the same either way.
     """
     shapes = jax.eval_shape(fn)
     if (jax.default_backend() != "cpu"
-            or max(s.size for s in jax.tree_util.tree_leaves(shapes)) < COMPUTED_ONCE_MIN_ROWS):
+            or max(s.size for s in jax.tree_util.tree_leaves(shapes))
+            < (COMPUTED_ONCE_MIN_ROWS if min_rows is None else min_rows)):
         return fn()
     zeros = lambda: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)  # noqa: E731
     return jax.lax.cond(always_true, fn, zeros)
