@@ -138,6 +138,7 @@ def time_bonded(particles, bonds, precision, records_per_chunk, chunks, log=prin
     k = records_per_chunk * plan.record_every
     fn = lab_core.record_chunk(plan, records_per_chunk)
     k0 = lambda c: jnp.asarray(c * records_per_chunk, jnp.int32)   # noqa: E731
+    every = jnp.asarray(records_per_chunk, jnp.int32)                # n_run: all records
     t0 = time.perf_counter()
     compiled = fn.lower(state, params, frame, k0(0)).compile()
     compile_s = time.perf_counter() - t0
@@ -146,7 +147,7 @@ def time_bonded(particles, bonds, precision, records_per_chunk, chunks, log=prin
     f64 = float64_ops(fn, state, params, frame, k0(0)) \
         if precision == "float32" and jax.config.jax_enable_x64 else None
     t0 = time.perf_counter()
-    state, _ = jax.block_until_ready(compiled(state, params, frame, k0(0)))   # warm-up chunk
+    state, _ = jax.block_until_ready(compiled(state, params, frame, k0(0), every))  # warm-up
     warm_s = time.perf_counter() - t0
     if bool(neighbors.overflowed(state.contacts, plan.config)):
         raise RuntimeError("bonded benchmark: the neighbour list overflowed in the warm-up")
@@ -155,7 +156,7 @@ def time_bonded(particles, bonds, precision, records_per_chunk, chunks, log=prin
     for c in range(chunks):
         b0 = int(state.contacts.n_builds)
         t0 = time.perf_counter()
-        state, _ = jax.block_until_ready(compiled(state, params, frame, k0(c + 1)))
+        state, _ = jax.block_until_ready(compiled(state, params, frame, k0(c + 1), every))
         times.append(time.perf_counter() - t0)
         builds.append(int(state.contacts.n_builds) - b0)
         log(f"  [{precision}] chunk {c}: {k / times[-1]:.1f} steps/s, "

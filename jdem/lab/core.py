@@ -295,6 +295,10 @@ def record_chunk(plan: Plan, n: int):
     def fn(state, params, frame, k0, n_run=n):
         return jitted(state, params, frame, k0, jnp.asarray(n_run, jnp.int32))
 
+    # ahead-of-time compilation (benchmarks): fn.lower(...).compile() takes the
+    # arguments of fn, n_run included
+    fn.lower = lambda state, params, frame, k0, n_run=n: jitted.lower(
+        state, params, frame, k0, jnp.asarray(n_run, jnp.int32))
     return fn
 
 
