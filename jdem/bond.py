@@ -242,14 +242,18 @@ def bonds_for_pairs(i, j, dim: int, *, capacity: int | None = None, dtype=None) 
 
 
 def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, step,
-                section: str = "circular"):
+                section: str = "circular", always_true=None):
     """One explicit incremental update of every bond (002 eq 3-13).
 
     Arguments: ``bonds`` (capacity B), ``particles`` (capacity N; ``vel`` and
     ``angvel`` are the velocities over the step), ``params`` (``dt`` and the
     ``bond_*`` fields), ``dim`` (2 or 3, static) and ``step`` (int, the current
     step number, stored in ``break_step`` when a bond breaks); ``section`` the 2D
-    bending section (``Config.bond_section``, see :func:`bond_geometry`).
+    bending section (``Config.bond_section``, see :func:`bond_geometry`);
+    ``always_true`` the traced true scalar of :func:`jdem.kinematics.computed_once`
+    (default ``step >= 0``); under ``vmap`` pass one that is not batched, as
+    :func:`jdem.integrate.step_batched` does, or the conditional that keeps the
+    law in memory becomes a select.
 
     Returns ``(new_bonds, force (N, d) [N], torque (N,) or (N, 3) [N m])``.
     Invalid rows contribute nothing and keep zero history.
@@ -268,10 +272,12 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     # The law row by row, into memory (jdem.kinematics.computed_once, at every
     # size): otherwise, under jax.jvp, XLA:CPU fuses the tangent of the whole law
     # into the concatenation that stacks the shear components and evaluates it
-    # element by element, so that a Jacobian by forward mode cost 8.9 forward runs
-    # per tangent instead of 2.9 (experiments/jvp_profile.py, jacobian_cost.py).
+    # element by element, so that a Jacobian by forward mode cost 8.1 forward runs
+    # per tangent instead of 2.6 (experiments/jvp_profile.py, jacobian_cost.py); the
+    # forward 3D bonded step is faster too (experiments/results/bonded/NOTES.md).
     law = computed_once(lambda: _bond_law(bonds, particles, params, dim, step, section),
-                        jnp.asarray(step) >= 0, min_rows=0)
+                        jnp.asarray(step) >= 0 if always_true is None else always_true,
+                        min_rows=0)
     valid, i, j = bonds.valid, bonds.i, bonds.j
     f1, t1, t2 = law.f1, law.t1, law.t2
     # one scatter per side and quantity (padding rows left out)

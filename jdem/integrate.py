@@ -36,15 +36,16 @@ def forces(state: State, params: Params, config: Config):
     return _forces(state, params, config)[:3]
 
 
-def _forces(state: State, params: Params, config: Config):
-    """:func:`forces` plus the deepest contact overlap over the smaller radius."""
+def _forces(state: State, params: Params, config: Config, always_true=None):
+    """:func:`forces` plus the deepest contact overlap over the smaller radius
+    (``always_true``: see :func:`jdem.bond.bond_forces`)."""
     p = state.particles
     contacts, f, t, _, depth = contact.contact_forces(state.contacts, p, params, config,
                                                       report_depth=True)
     bonds = state.bonds
     if bonds.i.shape[0] > 0:
         bonds, fb, tb = bond.bond_forces(bonds, p, params, config.dim, state.step,
-                                         config.bond_section)
+                                         config.bond_section, always_true)
         f, t = f + fb, t + tb
     walls, fw, tw, _ = walls_mod.wall_forces(state.walls, p, params, config)
     f = f + fw + p.ext_force + p.gravity_mass[:, None] * params.gravity
@@ -56,7 +57,8 @@ def _expand(mask, like):
     return mask.reshape(mask.shape + (1,) * (like.ndim - mask.ndim))
 
 
-def physics_step(state: State, params: Params, config: Config, boundary=None) -> State:
+def physics_step(state: State, params: Params, config: Config, boundary=None,
+                 always_true=None) -> State:
     """Advance one step assuming the neighbour list is current.
 
     ``boundary`` (optional) is a pair ``(fn, data)`` of boundary conditions that
@@ -65,12 +67,14 @@ def physics_step(state: State, params: Params, config: Config, boundary=None) ->
     velocity of prescribed (``fixed_vel``) components, e.g. an input velocity
     history, and returns an extra force (N, d) [N] that is added to the particle
     forces like ``ext_force``.  ``data`` is a pytree (traced, differentiable).
+    ``always_true``: see :func:`jdem.bond.bond_forces` (:func:`step_batched`
+    passes one from outside its ``vmap``).
     """
     extra = ()
     if boundary is not None:
         fn, data = boundary
         state, *extra = fn(state, params, data)
-    state, force, torque, depth = _forces(state, params, config)
+    state, force, torque, depth = _forces(state, params, config, always_true)
     if extra:
         force = force + extra[0]
         if len(extra) > 1:
@@ -139,8 +143,12 @@ def step_batched(state: State, params: Params, config: Config, boundary=None) ->
     contacts = jax.lax.cond(jnp.any(need), lambda c: build(c, state.particles, state.bonds),
                             lambda c: c, state.contacts)
     state = state._replace(contacts=contacts)
+    # true, traced and the same for every member: the bond law's conditional
+    # (jdem.bond.bond_forces) stays a conditional under the vmap below
+    always_true = jnp.all(state.step >= 0)
     if boundary is None:
-        return jax.vmap(physics_step, in_axes=(0, 0, None))(state, params, config)
+        return jax.vmap(lambda s, p: physics_step(s, p, config, None, always_true))(
+            state, params)
     fn, data = boundary
-    one = lambda s, p, d: physics_step(s, p, config, (fn, d))
+    one = lambda s, p, d: physics_step(s, p, config, (fn, d), always_true)
     return jax.vmap(one)(state, params, data)
