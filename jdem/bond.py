@@ -273,8 +273,8 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     # size): otherwise, under jax.jvp, XLA:CPU fuses the tangent of the whole law
     # into the concatenation that stacks the shear components and evaluates it
     # element by element, so that a Jacobian by forward mode cost 8.1 forward runs
-    # per tangent instead of 2.6 (experiments/jvp_profile.py, jacobian_cost.py); the
-    # forward 3D bonded step is faster too (experiments/results/bonded/NOTES.md).
+    # per tangent instead of 2.6 (experiments/jvp_profile.py, jacobian_cost.py).  The
+    # forward step is unchanged (3D bonded benchmark: 227 -> 239 steps/s, one pair).
     law = computed_once(lambda: _bond_law(bonds, particles, params, dim, step, section),
                         jnp.asarray(step) >= 0 if always_true is None else always_true,
                         min_rows=0)
