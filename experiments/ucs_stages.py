@@ -63,10 +63,19 @@ def main(argv=None):
     ap.add_argument("--full", action="store_true",
                     help="the seed's 5 cm x 10 cm specimen (~13,000 discs) instead of the "
                          "reduced 1.8 cm x 3.6 cm one")
+    ap.add_argument("--damping", default="local:0.8",
+                    help="'local:ALPHA' (000 eq 3-19, default alpha 0.8 as the seed's) or "
+                         "'smooth' (the lab tests' default, jdem.lab.smooth())")
     ap.add_argument("--plates", action="store_true",
                     help="load through steel plates bonded to the faces (jdem.specimen."
                          "add_plates, 002 Fig 7) instead of rigid frictionless platens")
     a = ap.parse_args(argv)
+    if a.damping == "smooth":
+        damping = lab.smooth()
+    elif a.damping.startswith("local:"):
+        damping = lab.local(float(a.damping.split(":", 1)[1]))
+    else:
+        ap.error(f"--damping must be 'local:ALPHA' or 'smooth', got {a.damping!r}")
     a.out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     size, radii = (FULL_SIZE, FULL_RADII) if a.full else (SIZE, RADII)
@@ -77,12 +86,13 @@ def main(argv=None):
         spec = add_plates(spec)
     params = rock_params(2, kappa=list(a.kappas), plate_youngs=200e9 if a.plates else None)
     setup = lab.UCS.setup([spec] * len(a.kappas), params,
-                          platen_step=STEP, max_strain=4e-3, damping=lab.local(0.8),
+                          platen_step=STEP, max_strain=4e-3, damping=damping,
                           record_every=50)
     # saved every minute; a run interrupted (Ctrl-C) continues from it when started again
     ckpt = a.out / "ucs_stages.checkpoint.h5"
     res = lab.run(setup, stop_stress_ratio=0.15, progress=True, warn_dynamic=False,
                   checkpoint=ckpt, resume=ckpt if ckpt.exists() else None)
+    ckpt.unlink(missing_ok=True)          # finished: a later run starts afresh
     run_s = time.time() - t0
     st = lab.curve_stages(res.history)
     rows = [dict(kappa=k, **{c: float(np.asarray(st[c])[m]) for c in COLUMNS})
@@ -98,7 +108,8 @@ def main(argv=None):
                 attrs={"kappas": list(a.kappas), "seed": a.seed, "command": command})
     md = ["# Stages of the UCS curve and breaks by mode (002 §2.2-2.3, Fig 10, 12, 15)", "",
           f"{out['date']}, `{command}`, float64, 2-core CPU; packing {a.seed}: {n} discs, "
-          f"{n_bonds} bonds, {size[0] * 100:g} cm x {size[1] * 100:g} cm; {run_s:.0f} s."
+          f"{n_bonds} bonds, {size[0] * 100:g} cm x {size[1] * 100:g} cm, damping {a.damping}; "
+          f"{run_s:.0f} s."
           + (f" Loaded through bonded steel plates ({spec.info['n_plate_discs']} discs; the "
              "break counts include the rock discs' bonds to the plates)." if a.plates else ""),
           "",

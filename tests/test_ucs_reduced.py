@@ -98,7 +98,9 @@ def test_reduced_study_peak_at_kappa_2_4_percent_is_the_seeds(study):
     "packing in float32 (2026-12-04): 13.57 MPa and 575e-6 at kappa = 0, 1.146e-3 (+33 %, "
     "outside 3 x 10.1 %) at kappa = 2.4 %.  The peak at kappa = 2.4 % matches (the test above).  "
     "Not a size effect: at the seed's 5 cm x 10 cm (12,198 discs, experiments/results/"
-    "ucs_stages_full/) the kappa = 0 peak is 14.92 MPa at 502e-6."))
+    "ucs_stages_full/) the kappa = 0 peak is 14.92 MPa at 502e-6.  It is the damping: with "
+    "local damping 0.3 instead of the seed's 0.8 this packing's kappa = 0 peak is 7.60 MPa "
+    "(experiments/results/ucs_stages_damping/)."))
 def test_reduced_study_brittle_peak_and_critical_strains_are_the_seeds(study):
     _, _, _, s = study
     for kappa in (0.0, 2.4e-2):
