@@ -275,50 +275,28 @@ def bond_forces(bonds: Bonds, particles: Particles, params: Params, dim: int, st
     # element by element, so that a Jacobian by forward mode cost 8.1 forward runs
     # per tangent instead of 2.6 (experiments/jvp_profile.py, jacobian_cost.py).  The
     # forward step is unchanged (3D bonded benchmark: 227 -> 239 steps/s, one pair).
-    law = computed_once(lambda: _bond_law(bonds, particles, params, dim, step, section),
-                        jnp.asarray(step) >= 0 if always_true is None else always_true,
-                        min_rows=0)
+    new, f1, t1, t2 = computed_once(
+        lambda: _bond_law(bonds, particles, params, dim, step, section),
+        jnp.asarray(step) >= 0 if always_true is None else always_true, min_rows=0)
     valid, i, j = bonds.valid, bonds.i, bonds.j
-    f1, t1, t2 = law.f1, law.t1, law.t2
     # one scatter per side and quantity (padding rows left out)
     n_part = particles.pos.shape[0]
     add = lambda rows, index: segment_add(rows, index, n_part, where=valid)
     force = add(f1, i) + add(tuple(-f for f in f1), j)
     torque = add(t1, i) + add(t2, j)
     stack = lambda v: jnp.stack(v, axis=-1) if isinstance(v, tuple) else v
-    new_bonds = bonds._replace(
-        normal_force=law.fn, shear_force=stack(law.fs), twist=law.twist, bend=stack(law.bend),
-        u_n=law.u_n, u_s=stack(law.u_s), alpha=law.alpha, beta=law.beta,
-        moment_lost=law.moment_lost, broken=law.broken, break_mode=law.break_mode,
-        break_step=law.break_step)
+    new_bonds = new._replace(i=i, j=j, valid=valid, shear_force=stack(new.shear_force),
+                             bend=stack(new.bend), u_s=stack(new.u_s))
     return new_bonds, force, torque
 
 
-class _BondLaw(NamedTuple):
-    """The per-row results of :func:`_bond_law`: the new bond fields (vectors as
-    component tuples), the force ``f1`` on particle 1 and the torques ``t1``,
-    ``t2`` on particles 1 and 2, zero on invalid rows."""
-
-    fn: Array
-    fs: tuple
-    twist: Array
-    bend: Array | tuple
-    u_n: Array
-    u_s: tuple
-    alpha: Array
-    beta: Array
-    moment_lost: Array
-    broken: Array
-    break_mode: Array
-    break_step: Array
-    f1: tuple
-    t1: Array | tuple
-    t2: Array | tuple
-
-
 def _bond_law(bonds: Bonds, particles: Particles, params: Params, dim: int, step,
-              section: str) -> _BondLaw:
-    """002 eq 3-13 on every row (see :func:`bond_forces`)."""
+              section: str):
+    """002 eq 3-13 on every row (see :func:`bond_forces`): ``(new bonds, f1, t1,
+    t2)``, the new bonds without ``i``, ``j``, ``valid`` (None: not passed through
+    the conditional) and with the vector fields as component tuples; ``f1`` the
+    force on particle 1, ``t1``, ``t2`` the torques on particles 1 and 2, zero on
+    invalid rows."""
     valid = bonds.valid
     i, j = bonds.i, bonds.j
     mat = bond_material(bonds, particles, params)
@@ -451,9 +429,11 @@ def _bond_law(bonds: Bonds, particles: Particles, params: Params, dim: int, step
     else:
         t1 = cross_r_f(r1, f1) + bend
         t2 = cross_r_f(r2, tuple(-f for f in f1)) - bend
-    return _BondLaw(fn=fn, fs=fs, twist=twist, bend=bend, u_n=z(u_n), u_s=zv(u_s), alpha=alpha,
-                    beta=beta, moment_lost=moment_lost, broken=broken, break_mode=break_mode,
-                    break_step=break_step, f1=f1, t1=zv(t1), t2=zv(t2))
+    new = bonds._replace(
+        i=None, j=None, valid=None, normal_force=fn, shear_force=fs, twist=twist, bend=bend,
+        u_n=z(u_n), u_s=zv(u_s), alpha=alpha, beta=beta, moment_lost=moment_lost,
+        broken=broken, break_mode=break_mode, break_step=break_step)
+    return new, f1, zv(t1), zv(t2)
 
 
 def damage(bonds: Bonds) -> dict:
