@@ -9,9 +9,9 @@
 ``jdem ucs`` reads an optional TOML file with the sections and keys below (all
 optional; anything else is an error naming the key).  Built-in defaults are the
 seed's 002 §2 specimen (5 cm x 10 cm, r in [0.228, 0.422] mm) at the
-quasi-static default loading rate (days on a CPU); ``--small`` starts from a
-reduced specimen instead (1 cm x 2 cm, ~500 discs: minutes), which the file may
-override.
+quasi-static default loading rate (days on a CPU); ``--small`` replaces the
+specimen's size with a reduced one (1 cm x 2 cm, ~500 discs: minutes), also where
+the file sets it, and says so.
 
     [specimen]  width, height [m], r_min, r_max [m], seed (int), porosity (target,
                 omit for the densest packing), coordination (target N-bar, default 5)
@@ -118,7 +118,7 @@ UCS_DEFAULTS = {
                     local_damping=0.8, stop_stress_ratio=0.3, record_every=0,
                     precision="float32"),
 }
-UCS_SMALL = {
+UCS_SMALL = {                     # --small: replaces these, also where the file sets them
     "specimen": dict(width=0.01, height=0.02),
 }
 
@@ -140,20 +140,22 @@ def _number(where, value, *, lo=None, hi=None, lo_open=False, hi_open=False, int
     return value
 
 
-def ucs_settings(config_path=None, small=False, defaults=None) -> dict:
+def ucs_settings(config_path=None, small=False, defaults=None, small_settings=None) -> dict:
     """The settings of ``jdem ucs`` (or of ``jdem calibrate``, ``defaults =
-    CALIBRATE_DEFAULTS``): built-in defaults (``--small``: reduced), overridden
-    by the TOML file.  Unknown sections / keys and bad values raise
-    :class:`jdem.validate.InputError` naming the key and the value."""
+    CALIBRATE_DEFAULTS, small_settings = CALIBRATE_SMALL``): built-in defaults,
+    overridden by the TOML file; ``--small`` (``small``) then replaces the specimen
+    size and the loading rate, also where the file sets them (a smoke test of the
+    file: everything else is the file's), and prints each value it replaced.
+    Unknown sections / keys and bad values raise :class:`jdem.validate.InputError`
+    naming the key and the value."""
     import copy
     import tomllib
 
     from jdem.validate import InputError, read_text_file
 
     cfg = copy.deepcopy(UCS_DEFAULTS if defaults is None else defaults)
-    if small:
-        for sec, vals in UCS_SMALL.items():
-            cfg[sec].update(vals)
+    small_settings = UCS_SMALL if small_settings is None else small_settings
+    from_file = {}
     if config_path is not None:
         path = pathlib.Path(config_path)
         try:
@@ -170,6 +172,14 @@ def ucs_settings(config_path=None, small=False, defaults=None) -> dict:
                 if key not in cfg[sec]:
                     raise InputError(f"{path}: unknown key {sec}.{key} = {value!r} (allowed in "
                                      f"[{sec}]: {', '.join(cfg[sec])})")
+                cfg[sec][key] = value
+                from_file[sec, key] = value
+    if small:
+        for sec, vals in small_settings.items():
+            for key, value in vals.items():
+                if (sec, key) in from_file and from_file[sec, key] != value:
+                    print(f"  --small: {sec}.{key} = {value!r} instead of "
+                          f"{from_file[sec, key]!r} from {config_path}")
                 cfg[sec][key] = value
     sp, mat, ld = cfg["specimen"], cfg["material"], cfg["loading"]
     for k in ("width", "height", "r_min", "r_max"):
@@ -341,10 +351,13 @@ CALIBRATE_DEFAULTS = {
     "fit": dict(parameters=["E", "strength"], method="lm", steps=20, bounds={},
                 require_quasi_static=True, extrapolate_rate=False),
 }
+# --small: a ~100-disc specimen at a fast, uncertified rate (a smoke test of the user's
+# CSV and TOML); replaces these, also where the file sets them
 CALIBRATE_SMALL = {"specimen": dict(width=0.004, height=0.008, r_min=0.2e-3, r_max=0.35e-3,
-                                    seed=2, coordination=4.5),
-                   "loading": dict(loading_rate=6.4e-5),
-                   "fit": dict(steps=8, require_quasi_static=False)}
+                                    seed=2, porosity=None, coordination=4.5),
+                   "loading": dict(loading_rate=6.4e-5, platen_step=0.0),
+                   "fit": dict(require_quasi_static=False)}
+CALIBRATE_SMALL_STEPS = 8         # --small's default iteration budget (the file may set it)
 
 
 def calibrate_settings(config_path=None, small=False) -> dict:
@@ -357,9 +370,8 @@ def calibrate_settings(config_path=None, small=False) -> dict:
 
     defaults = copy.deepcopy(CALIBRATE_DEFAULTS)
     if small:
-        for sec, vals in CALIBRATE_SMALL.items():
-            defaults[sec].update(vals)
-    cfg = ucs_settings(config_path, False, defaults=defaults)
+        defaults["fit"]["steps"] = CALIBRATE_SMALL_STEPS
+    cfg = ucs_settings(config_path, small, defaults=defaults, small_settings=CALIBRATE_SMALL)
     _number("specimen.members", cfg["specimen"]["members"], lo=1, integer=True)
     if isinstance(cfg["material"]["kappa"], list):
         raise InputError(f"material.kappa must be one number for calibration, got "
@@ -467,7 +479,8 @@ def main(argv=None):
     u.add_argument("--config", default=None, help="TOML file (see `jdem --help`)")
     u.add_argument("--out", default="results/ucs")
     u.add_argument("--small", action="store_true",
-                   help="reduced specimen (1 cm x 2 cm, ~500 discs) and a faster platen")
+                   help="reduced specimen (1 cm x 2 cm, ~500 discs), replacing the "
+                        "config's size")
     u.add_argument("--animate", action="store_true",
                    help="also write failure.gif: the cracks developing (first kappa)")
     u.add_argument("--paraview", action="store_true",
@@ -481,7 +494,8 @@ def main(argv=None):
                                                   "values), [loading], [fit]")
     c.add_argument("--out", default="results/calibrate")
     c.add_argument("--small", action="store_true",
-                   help="~100-disc specimen, fast loading, no quasi-static check (smoke test)")
+                   help="~100-disc specimen, fast loading, no quasi-static check, replacing "
+                        "the config's specimen and rate (a smoke test of the CSV and config)")
     for p in (u, c):
         p.add_argument("--resume", action="store_true",
                        help="continue an interrupted run from the checkpoint in --out "

@@ -399,6 +399,32 @@ def test_cli_config_that_is_a_folder_a_binary_or_has_a_bom(tmp_path):
     assert cli.ucs_settings(bom)["specimen"]["width"] == 0.012
 
 
+def test_small_replaces_the_configs_specimen_and_rate_and_says_so(tmp_path, capsys):
+    """``--small`` is a smoke test of the user's own file: the README's fit.toml sets a
+    2 cm x 4 cm specimen, and ``--small`` must still run ~100 discs at the fast rate,
+    keeping the file's material, parameters and steps, and print what it replaced."""
+    path = tmp_path / "fit.toml"
+    path.write_text("[specimen]\nwidth = 0.02\nheight = 0.04\nmembers = 2\n"
+                    "[material]\nE = 31e9\n[loading]\nplaten_step = 1e-9\n"
+                    "[fit]\nparameters = [\"E\", \"kappa\"]\nsteps = 5\n")
+    full = cli.calibrate_settings(path)
+    assert (full["specimen"]["width"], full["loading"]["platen_step"]) == (0.02, 1e-9)
+    small = cli.calibrate_settings(path, small=True)
+    for sec, vals in cli.CALIBRATE_SMALL.items():
+        assert {k: small[sec][k] for k in vals} == vals
+    assert small["specimen"]["members"] == 2 and small["material"]["E"] == 31e9
+    assert small["fit"]["steps"] == 5 and small["fit"]["parameters"] == ["E", "kappa"]
+    said = capsys.readouterr().out
+    assert "specimen.width = 0.004 instead of 0.02" in said
+    assert "loading.platen_step = 0.0 instead of 1e-09" in said
+    assert cli.calibrate_settings(None, small=True)["fit"]["steps"] == cli.CALIBRATE_SMALL_STEPS
+    ucs_file = tmp_path / "ucs.toml"
+    ucs_file.write_text("[specimen]\nwidth = 0.05\n[material]\nkappa = 0.01\n")
+    ucs_small = cli.ucs_settings(ucs_file, small=True)
+    assert ucs_small["specimen"]["width"] == cli.UCS_SMALL["specimen"]["width"]
+    assert ucs_small["material"]["kappa"] == 0.01
+
+
 # ----------------------------------------------------------------------------- one definition
 DEMO_SIZE = (0.004, 0.008)
 
