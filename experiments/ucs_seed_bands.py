@@ -7,8 +7,9 @@ against the seed's figures (002 §2.2-2.3).
 
 Each packing: a 1.8 cm x 3.6 cm rectangle, r in [0.2, 0.35] mm, N-bar 5, the
 seed's material (E 30 GPa, nu 0.22, T0 = c0 = 3 MPa, phi 30 deg), local damping
-0.8 and a 3 nm platen step (the seed's protocol, 002 §2.1; the seed's specimen
-is 5 cm x 10 cm with 13,097 discs and a 1 nm step).  All packings and fracture
+0.8 and a 3 nm platen step (the seed's specimen is 5 cm x 10 cm with 13,097 discs
+and a 1 nm step, 002 §2.1; the 3 nm step is a loading rate of 5.2e-5, 3-13 x the
+seed's, whose kappa = 0 peak it doubles: experiments/results/ucs_stages_rate/).  All packings and fracture
 strains run as one batch, stopping once every member fell below 60 % of its
 peak.  The seed gives (002 §2.2, Fig 11, 14): kappa = 0: peak 6.54 MPa at a
 critical strain of 232e-6, fracture degree 1.5 % at the peak and 19 % at the

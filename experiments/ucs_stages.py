@@ -6,6 +6,7 @@ mode (Fig 12), per fracture strain kappa, beside the seed's statements.
     python experiments/ucs_stages.py --kappas 0 0.001 0.003 0.006 0.012 0.024 --seed 3
     python experiments/ucs_stages.py --plates --out experiments/results/ucs_stages_plates
     python experiments/ucs_stages.py --full --out experiments/results/ucs_stages_full
+    python experiments/ucs_stages.py --kappas 0 0.024 --loading-rate 4e-6 --plates --free-plates
 
 One packing of the reduced study (``experiments/ucs_seed_bands.py``: a 1.8 cm x
 3.6 cm rectangle, r in [0.2, 0.35] mm, N-bar 5, the seed's material, local damping
@@ -19,7 +20,15 @@ mixes tension and shear, with large kappa it is compression-shear.
 ``--full`` runs the seed's specimen instead: 5 cm x 10 cm, r in [0.228, 0.422] mm
 (13,097 discs at the seed's density, as ``experiments/ucs_fracture_strain.py``),
 still with the 3 nm platen step (the strain per step is then 2.8 x smaller than
-the reduced study's).
+the reduced study's, the loading rate the same).
+
+The 3 nm step is a loading rate (platen speed / bar wave speed) of 5.2e-5 with
+jdem's time step: 13 x the certified default and 3-13 x faster than the seed's
+1 nm step (which is 3.9e-6 with the textbook's time step, 000 eq 3-26, 1.5e-5
+with jdem's), and the kappa = 0 peak is the rate's there.  ``--loading-rate``
+runs at a rate instead; the last example is the seed's protocol (its damping,
+its step as a rate, its faces held and free sideways), where the seed's
+kappa = 0 figures come back (experiments/results/ucs_stages_rate/NOTES.md).
 
 Writes ``experiments/results/ucs_stages/``: ``ucs_stages.md`` (the table),
 ``.json``, ``.h5`` (curves and counts; reopen with ``jdem.io.load_run``) and
@@ -69,6 +78,17 @@ def main(argv=None):
     ap.add_argument("--plates", action="store_true",
                     help="load through steel plates bonded to the faces (jdem.specimen."
                          "add_plates, 002 Fig 7) instead of rigid frictionless platens")
+    ap.add_argument("--free-plates", action="store_true",
+                    help="with --plates: one row of plate discs bonded to the rock only, not "
+                         "to each other, so the faces are held in the loading direction and "
+                         "free sideways (the seed's UCS boundary, 002 §2.1)")
+    ap.add_argument("--section", choices=("circular", "slab"), default="circular",
+                    help="2D bond bending section (jdem.lab.UCS.setup's bond_section): the "
+                         "seed's circular formula (002 eq 5, default) or a unit-thickness slab")
+    ap.add_argument("--loading-rate", type=float, default=None,
+                    help="platen speed / bar wave speed (jdem.lab.UCS.setup's loading_rate) "
+                         f"instead of the {STEP * 1e9:g} nm platen step; the lab tests' certified "
+                         "default is 4e-6, the 3 nm step is 5.2e-5 on the reduced specimen")
     a = ap.parse_args(argv)
     if a.damping == "smooth":
         damping = lab.smooth()
@@ -82,11 +102,16 @@ def main(argv=None):
     spec = generate("rectangle", size, *radii, seed=a.seed, target_coordination=5.0)
     n = int(np.sum(np.asarray(spec.particles.valid)))
     n_bonds = int(np.sum(np.asarray(spec.bonds.valid)))
+    if a.free_plates and not a.plates:
+        ap.error("--free-plates goes with --plates")
     if a.plates:
-        spec = add_plates(spec)
+        spec = add_plates(spec, **(dict(rows=1, bond_plate_discs=False) if a.free_plates
+                                   else {}))
     params = rock_params(2, kappa=list(a.kappas), plate_youngs=200e9 if a.plates else None)
     setup = lab.UCS.setup([spec] * len(a.kappas), params,
-                          platen_step=STEP, max_strain=4e-3, damping=damping,
+                          **(dict(platen_step=STEP) if a.loading_rate is None
+                             else dict(loading_rate=a.loading_rate)),
+                          max_strain=4e-3, damping=damping, bond_section=a.section,
                           record_every=50)
     # saved every minute; a run interrupted (Ctrl-C) continues from it when started again
     ckpt = a.out / "ucs_stages.checkpoint.h5"
@@ -100,7 +125,11 @@ def main(argv=None):
     command = "python experiments/ucs_stages.py " + " ".join(
         argv if argv is not None else sys.argv[1:])
     out = dict(date=datetime.date.today().isoformat(), command=command, n_discs=n,
-               n_bonds=n_bonds, run_s=run_s, rows=rows)
+               n_bonds=n_bonds, run_s=run_s, rows=rows,
+               loading_rate=float(setup.plan.option("loading_rate")), damping=a.damping,
+               section=a.section,
+               boundary=("free plates" if a.free_plates else "bonded plates") if a.plates
+               else "rigid platens")
     (a.out / "ucs_stages.json").write_text(json.dumps(out, indent=1))
     io.save_run(a.out / "ucs_stages.h5",
                 history={k: res.history[k] for k in ("axial_strain", "axial_stress",
@@ -108,10 +137,13 @@ def main(argv=None):
                 attrs={"kappas": list(a.kappas), "seed": a.seed, "command": command})
     md = ["# Stages of the UCS curve and breaks by mode (002 §2.2-2.3, Fig 10, 12, 15)", "",
           f"{out['date']}, `{command}`, float64, 2-core CPU; packing {a.seed}: {n} discs, "
-          f"{n_bonds} bonds, {size[0] * 100:g} cm x {size[1] * 100:g} cm, damping {a.damping}; "
+          f"{n_bonds} bonds, {size[0] * 100:g} cm x {size[1] * 100:g} cm, damping {a.damping}, "
+          f"bond section {a.section}, "
+          f"loading rate {float(setup.plan.option('loading_rate')):.3g}; "
           f"{run_s:.0f} s."
-          + (f" Loaded through bonded steel plates ({spec.info['n_plate_discs']} discs; the "
-             "break counts include the rock discs' bonds to the plates)." if a.plates else ""),
+          + (f" Loaded through {'free' if a.free_plates else 'bonded'} steel plates "
+             f"({spec.info['n_plate_discs']} discs; the break counts include the rock discs' "
+             "bonds to the plates)." if a.plates else ""),
           "",
           "| kappa % | linear end MPa (seed ~5.9) | first break MPa | peak MPa | peak strain "
           "1e-6 | non-linear / linear rise (seed ~0.2 at 0, > 2 at 2.4 %) | steepest descent "

@@ -199,6 +199,28 @@ def test_plates_are_bonded_lattices_on_the_faces(block):
         y_hi - y_lo + 2 * pl.info["plate_thickness"], rel=1e-12)
 
 
+def test_plates_without_plate_plate_bonds_hold_each_face_particle_on_its_own(block):
+    """``bond_plate_discs=False`` (the seed's UCS boundary, free sideways): the
+    rock's bonds and the same plate-rock bonds as a bonded plate of one row, and no
+    bond between two plate discs."""
+    bonded = add_plates(block, rows=1)
+    free = add_plates(block, rows=1, bond_plate_discs=False)
+    assert free.info["plate_discs_bonded"] is False and bonded.info["plate_discs_bonded"]
+    n_rock = free.info["n_rock"]
+
+    def pairs(sp):
+        b = sp.bonds
+        v = np.asarray(b.valid)
+        return np.asarray(b.i)[v], np.asarray(b.j)[v]
+
+    i, j = pairs(free)
+    assert not np.any((i >= n_rock) & (j >= n_rock))
+    bi, bj = pairs(bonded)
+    keep = (bi < n_rock) | (bj < n_rock)
+    assert sorted(zip(i.tolist(), j.tolist())) == sorted(zip(bi[keep].tolist(), bj[keep].tolist()))
+    assert np.sum(~keep) == free.info["n_plate_discs"] - 2      # a row of n discs: n - 1 bonds
+
+
 def test_bonded_plates_take_the_seating_out_of_the_energy_ratio(block):
     """002 §1.4: lambda = L_p / L_e at 1 MPa.  Between rigid platens the block's
     seating doubles lambda (measured 2.07); with steel plates bonded to its faces

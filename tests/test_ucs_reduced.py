@@ -7,9 +7,14 @@ Runtime: ~20 s to generate, ~2 min to load on this project's 2-core CPU
 softened below 60 % of its peak).  Its own file, so that ``--dist loadfile``
 can give it a worker of its own.
 
-The seed's protocol: local damping 0.8 (000 eq 3-19, 002 §2.1) and a fixed
-platen step (3 nm on 3.6 cm, 8.3e-8 strain per step), after the lab layer's
-ramp of ten wave transits.
+Loading: the seed's local damping 0.8 (000 eq 3-19, 002 §2.1) and a fixed platen
+step of 3 nm, after the lab layer's ramp of ten wave transits.  With jdem's time
+step that is a loading rate (platen speed / bar wave speed) of 5.2e-5, 13 x the
+certified default: fast enough for the suite, and the trends below hold at every
+rate measured, but the peaks are the loading rate's, not the rock's (at kappa = 0
+13.6 MPa here, 5.5 at 4e-6, 3.7-4.6 as the rate goes to zero;
+experiments/results/ucs_stages_rate/NOTES.md).  The comparison with the seed's
+figures is therefore made at the seed's own protocol, in the slow tests at the end.
 """
 import numpy as np
 import pytest
@@ -17,7 +22,7 @@ import pytest
 from jdem import lab
 from jdem.batch import member
 from jdem.materials import rock_params
-from jdem.specimen import generate
+from jdem.specimen import add_plates, generate
 
 SIZE = (0.018, 0.036)            # [m] width x height
 RADII = (0.2e-3, 0.35e-3)        # [m] (the seed: 0.228-0.422 mm)
@@ -73,41 +78,67 @@ def test_reduced_study_breaks_are_counted_by_mode(study):
 
 # The seed's figures (002 §2.2, Fig 11) as pass bands.  The band is 3 standard
 # deviations of the packing scatter measured on four packings of this study
-# (experiments/ucs_seed_bands.py, experiments/results/ucs_seed_bands/): peak
-# stress 5.2 % (kappa 0) and 1.8 % (kappa 2.4 %), critical strain 3.8 % / 10.1 %.
+# (experiments/ucs_seed_bands.py, experiments/results/ucs_seed_bands/, at the 3 nm step):
+# peak stress 5.2 % (kappa 0) and 1.8 % (kappa 2.4 %), critical strain 3.8 % / 10.1 %.
 SEED_PEAK = {0.0: 6.54e6, 2.4e-2: 20.1e6}
 SEED_CRITICAL_STRAIN = {0.0: 232e-6, 2.4e-2: 861e-6}
 PEAK_SCATTER = {0.0: 0.052, 2.4e-2: 0.018}
 STRAIN_SCATTER = {0.0: 0.038, 2.4e-2: 0.101}
+SEED_KAPPAS = (0.0, 2.4e-2)
+#: the seed's 1 nm step (002 §2.1) as a loading rate, with the textbook's time step
+#: (000 eq 3-26, 3-27: T_min / 10 of the stiffest single bond on the lightest disc,
+#: 3.9 x jdem's): 3.9e-6 on the seed's discs, 4.5e-6 on these
+SEED_RATE = 4e-6
 
 
-def test_reduced_study_peak_at_kappa_2_4_percent_is_the_seeds(study):
-    """kappa = 2.4 %: the peak stress is the seed's 20.1 MPa within 3 x 1.8 %
-    (measured in float32 on 2026-12-04: 19.79 MPa, -1.5 %; four packings in float64
-    19.88 +- 0.37 MPa)."""
-    _, _, _, s = study
-    k = KAPPAS.index(2.4e-2)
-    assert abs(s["peak_stress"][k] / SEED_PEAK[2.4e-2] - 1) < 3 * PEAK_SCATTER[2.4e-2]
+@pytest.fixture(scope="module")
+def seed_protocol():
+    """The seed's UCS protocol on this packing: local damping 0.8, the seed's step
+    as a loading rate (``SEED_RATE``), and its boundary, the face particles held
+    in the loading direction and free sideways (002 §2.1: "bottom held normally,
+    top driven at a quasi-static velocity"): one row of plate discs bonded to the
+    rock only (``add_plates(..., rows=1, bond_plate_discs=False)``) between
+    frictionless platens.  float64, ~4 min."""
+    spec = add_plates(generate("rectangle", SIZE, *RADII, seed=2, target_coordination=5.0),
+                      rows=1, bond_plate_discs=False)
+    setup = lab.UCS.setup(spec, rock_params(2, kappa=list(SEED_KAPPAS), plate_youngs=200e9),
+                          loading_rate=SEED_RATE, max_strain=1.6e-3, damping=lab.local(0.8),
+                          record_every=50, precision="float64")
+    res = lab.run(setup, stop_stress_ratio=0.6, progress=False, warn_dynamic=False)
+    return lab.peak_summary(res.history)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "not met (experiments/results/ucs_seed_bands/, float64): at kappa = 0 the peak is "
-    "14.4 +- 0.75 MPa over four packings against the seed's 6.54 MPa (+119 %), at a critical "
-    "strain of 522e-6 against 232e-6, with 13 % of the bonds broken at the peak against 1.5 %; "
-    "at kappa = 2.4 % the critical strain is 1.10e-3 against 861e-6 (+28 %).  This test's "
-    "packing in float32 (2026-12-04): 13.57 MPa and 575e-6 at kappa = 0, 1.146e-3 (+33 %, "
-    "outside 3 x 10.1 %) at kappa = 2.4 %.  The peak at kappa = 2.4 % matches (the test above).  "
-    "Not a size effect: at the seed's 5 cm x 10 cm (12,198 discs, experiments/results/"
-    "ucs_stages_full/) the kappa = 0 peak is 14.92 MPa at 502e-6.  It is the damping: with "
-    "local damping 0.3 instead of the seed's 0.8 this packing's kappa = 0 peak is 7.60 MPa "
-    "(experiments/results/ucs_stages_damping/)."))
-def test_reduced_study_brittle_peak_and_critical_strains_are_the_seeds(study):
-    _, _, _, s = study
-    for kappa in (0.0, 2.4e-2):
-        k = KAPPAS.index(kappa)
-        assert abs(s["peak_stress"][k] / SEED_PEAK[kappa] - 1) < 3 * PEAK_SCATTER[kappa]
+@pytest.mark.slow
+def test_at_the_seeds_protocol_the_critical_strains_and_the_brittle_peak_are_the_seeds(
+        seed_protocol):
+    """At the seed's protocol the kappa = 0 peak and both critical strains lie in
+    the seed's bands (measured 2026-12-07, float64: 6.12 MPa against 6.54 (-6 %),
+    226e-6 against 232e-6, 799e-6 against 861e-6; experiments/ucs_stages.py's run to
+    a larger strain, whose records end later: 6.14 MPa, 229e-6, 821e-6).
+    At the 3 nm step of the fast study above the kappa = 0 peak was 13.6 MPa and
+    its critical strain 575e-6: the loading rate, not the damping or the size, made
+    the excess."""
+    s = seed_protocol
+    k0 = SEED_KAPPAS.index(0.0)
+    print(f"peaks {s['peak_stress'] / 1e6} MPa, critical strains {s['critical_strain']}")
+    assert abs(s["peak_stress"][k0] / SEED_PEAK[0.0] - 1) < 3 * PEAK_SCATTER[0.0]
+    for k, kappa in enumerate(SEED_KAPPAS):
         assert abs(s["critical_strain"][k] / SEED_CRITICAL_STRAIN[kappa] - 1) \
             < 3 * STRAIN_SCATTER[kappa]
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "not met: at the seed's protocol the kappa = 2.4 % peak is 16.43 MPa against the seed's "
+    "20.1 (-18 %; bonded steel plates 17.16, -15 %; rigid platens 16.39), with the seed's "
+    "critical strain (799e-6 against 861e-6) and a modulus of 27.4 GPa (the seed's kappa = 0 "
+    "curve: 28 GPa to its peak).  The curve bends more before its peak than the seed's "
+    "(secant modulus at the peak 20 GPa against the seed's 23); the reason is not found "
+    "(experiments/results/ucs_stages_rate/NOTES.md).  At the 3 nm step the peak was the "
+    "seed's (19.79 MPa), by the loading rate's excess."))
+def test_at_the_seeds_protocol_the_ductile_peak_is_the_seeds(seed_protocol):
+    k = SEED_KAPPAS.index(2.4e-2)
+    assert abs(seed_protocol["peak_stress"][k] / SEED_PEAK[2.4e-2] - 1) < 3 * PEAK_SCATTER[2.4e-2]
 
 
 @pytest.mark.slow

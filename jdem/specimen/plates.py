@@ -59,7 +59,7 @@ def plate_discs(x_lo, x_hi, face_y, radius, rows, downward):
 
 
 def add_plates(specimen, *, rows=2, radius=None, material=1, density=STEEL_DENSITY,
-               attach_gap=None):
+               attach_gap=None, bond_plate_discs=True):
     """The specimen with an elastic plate on its top face and one on its bottom.
 
     ``specimen``  a fresh 2D :class:`jdem.specimen.Specimen` (its bonds at rest)
@@ -72,6 +72,13 @@ def add_plates(specimen, *, rows=2, radius=None, material=1, density=STEEL_DENSI
     ``density``   plate density [kg/m^3] (default steel)
     ``attach_gap`` largest gap [m] at which a rock particle is bonded to the plate
                   (default: the rock's mean radius)
+    ``bond_plate_discs`` False: the plate discs are bonded to the rock only, not
+                  to each other (use ``rows=1``): each face particle is then
+                  held in the loading direction by the frictionless platen
+                  through its own plate disc and is free sideways and in
+                  rotation, as the seed's UCS boundary (002 §2.1: the bottom
+                  held normally, the top driven at a velocity), without the
+                  end restraint of a bonded steel plate
 
     The faces are the specimen box's (``Specimen.box``).  Returns a
     :class:`Specimen` with the plate discs appended after the rock particles,
@@ -125,11 +132,12 @@ def add_plates(specimen, *, rows=2, radius=None, material=1, density=STEEL_DENSI
     n_attached = []
     for first, plate in ((n_rock, bottom), (n_rock + len(bottom), top)):
         idx = first + np.arange(len(plate))
-        lattice = create_bonds(make_particles(plate, np.full(len(plate), radius)), 2,
-                               gap_tolerance=1e-6 * radius)
-        lv = np.asarray(lattice.valid, bool)
-        pi.append(idx[np.asarray(lattice.i)[lv]])
-        pj.append(idx[np.asarray(lattice.j)[lv]])
+        if bond_plate_discs:
+            lattice = create_bonds(make_particles(plate, np.full(len(plate), radius)), 2,
+                                   gap_tolerance=1e-6 * radius)
+            lv = np.asarray(lattice.valid, bool)
+            pi.append(idx[np.asarray(lattice.i)[lv]])
+            pj.append(idx[np.asarray(lattice.j)[lv]])
         inner = idx[:n_inner]
         # rock-plate pairs among the rock and the inner row (rock rows come first)
         a, b, _ = near_pairs(np.concatenate([pos, all_pos[inner]]),
@@ -145,5 +153,6 @@ def add_plates(specimen, *, rows=2, radius=None, material=1, density=STEEL_DENSI
     out_info = dict(info, n_rock=n_rock, plate_rows=int(rows), plate_radius=radius,
                     plate_thickness=float(thickness),
                     plate_material=int(material), n_plate_discs=int(len(bottom) + len(top)),
+                    plate_discs_bonded=bool(bond_plate_discs),
                     n_plate_rock_bonds=tuple(n_attached), attach_gap=attach_gap)
     return specimen._replace(particles=new, bonds=new_bonds, info=out_info)
