@@ -42,8 +42,11 @@ def load(dirs):
             n_peak = r["n_tension_at_peak"] + r["n_shear_at_peak"]
             runs.append(dict(folder=pathlib.Path(d).relative_to(RESULTS) if pathlib.Path(d)
                              .is_relative_to(RESULTS) else pathlib.Path(d),
-                             boundary=js["boundary"] + ("" if js.get("section", "circular")
-                                                        == "circular" else ", slab section"),
+                             boundary=js["boundary"]
+                             + ("" if js.get("section", "circular") == "circular"
+                                else ", slab section")
+                             + (f", radii x {js['embed']:g} (area fraction "
+                                f"{js['area_fraction']:.3f})" if js.get("embed") else ""),
                              damping=js["damping"],
                              rate=js["loading_rate"], kappa=r["kappa"],
                              peak=r["peak_stress"], strain=r["peak_strain"],
