@@ -7,7 +7,10 @@ arrangement that spans the specimen's width.  Its discs carry their own material
 fields in ``Params`` (:func:`jdem.materials.rock_params` ``plate_youngs``) the
 plate's bonds are steel while the rock's stay rock.  Bonds:
 
-* plate-plate: every touching pair of plate discs (the lattice's neighbours);
+* plate-plate: every touching pair of plate discs (the lattice's neighbours), unless
+  ``bond_plate_discs=False``: then each face particle is held by a plate disc of its
+  own, free sideways (the seed's UCS boundary, 002 §2.1, without a steel plate's end
+  restraint);
 * plate-rock: every rock particle whose gap to a disc of the plate's inner row
   is at most ``attach_gap`` [m] is bonded to it.  A bond is created at rest at
   whatever separation it has (:mod:`jdem.bond` counts the opening from
