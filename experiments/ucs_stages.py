@@ -8,7 +8,7 @@ mode (Fig 12), per fracture strain kappa, beside the seed's statements.
     python experiments/ucs_stages.py --full --out experiments/results/ucs_stages_full
     python experiments/ucs_stages.py --kappas 0 0.024 --loading-rate 4e-6 --plates --free-plates
     python experiments/ucs_stages.py --kappas 0 0.024 --loading-rate 4e-6 --plates --free-plates \
-        --embed 1.039                                       # and the seed's area fraction
+        --area-fraction 0.895                               # and the seed's area fraction
 
 One packing of the reduced study (``experiments/ucs_seed_bands.py``: a 1.8 cm x
 3.6 cm rectangle, r in [0.2, 0.35] mm, N-bar 5, the seed's material, local damping
@@ -30,7 +30,8 @@ jdem's time step: 13 x the certified default and 3-13 x faster than the seed's
 with jdem's), and the kappa = 0 peak is the rate's there.  ``--loading-rate``
 runs at a rate instead; the last example is the seed's protocol (its damping,
 its step as a rate, its faces held and free sideways), where the seed's
-kappa = 0 figures come back; with the seed's area fraction (``--embed``) its
+kappa = 0 figures come back; with the seed's area fraction (``--area-fraction``,
+or ``--embed`` the radius factor) its
 kappa = 2.4 % figures too (experiments/results/ucs_stages_rate/NOTES.md).
 
 Writes ``experiments/results/ucs_stages/``: ``ucs_stages.md`` (the table),
@@ -91,6 +92,9 @@ def main(argv=None):
     ap.add_argument("--embed", type=float, default=None,
                     help="grow every radius by this factor at fixed centres and rebond "
                          "(jdem.specimen.embed): the seed's denser specimens, 002 §1.4")
+    ap.add_argument("--area-fraction", type=float, default=None,
+                    help="instead of --embed: grow the radii until the discs fill this "
+                         "fraction of the specimen (the seed's: 0.895)")
     ap.add_argument("--loading-rate", type=float, default=None,
                     help="platen speed / bar wave speed (jdem.lab.UCS.setup's loading_rate) "
                          f"instead of the {STEP * 1e9:g} nm platen step; the lab tests' certified "
@@ -106,8 +110,9 @@ def main(argv=None):
     t0 = time.time()
     size, radii = (FULL_SIZE, FULL_RADII) if a.full else (SIZE, RADII)
     spec = generate("rectangle", size, *radii, seed=a.seed, target_coordination=5.0)
-    if a.embed is not None:
-        spec = embed(spec, a.embed)
+    if a.embed is not None or a.area_fraction is not None:
+        spec = embed(spec, a.embed, area_fraction=a.area_fraction)
+        a.embed = spec.info["embedding"]
     n = int(np.sum(np.asarray(spec.particles.valid)))
     n_bonds = int(np.sum(np.asarray(spec.bonds.valid)))
     if a.free_plates and not a.plates:

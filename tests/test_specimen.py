@@ -285,3 +285,12 @@ def test_embedding_grows_the_radii_at_fixed_centres_and_bonds_the_new_pairs(rect
         normal_force=rect.bonds.normal_force.at[0].set(1.0)))
     with pytest.raises(InputError, match="embed needs a fresh specimen"):
         embed(loaded, 1.1)
+    # the seed's way to say it: the area fraction to reach (002 §2.1: 0.895)
+    target = 1.1 ** 2 * (1 - rect.porosity)
+    by_fraction = embed(rect, area_fraction=target)
+    assert by_fraction.info["embedding"] == pytest.approx(1.1, rel=1e-12)
+    assert by_fraction.info["area_fraction"] == pytest.approx(target, rel=1e-12)
+    with pytest.raises(InputError, match="area_fraction"):
+        embed(rect, 1.1, area_fraction=target)
+    with pytest.raises(InputError, match="area_fraction"):
+        embed(rect)

@@ -128,7 +128,7 @@ def flatten_disc(specimen_disc, flat_angle_deg):
     return parts, new_bonds, out_info
 
 
-def embed(specimen, scale, *, gap_tolerance=None):
+def embed(specimen, scale=None, *, area_fraction=None, gap_tolerance=None):
     """The specimen with every radius times ``scale`` (>= 1) at fixed centres, and
     rebonded: the "embedding" (颗粒间嵌入量) by which 002 §1.4 raises the mean
     coordination number beyond what a packing of touching discs has.
@@ -138,6 +138,9 @@ def embed(specimen, scale, *, gap_tolerance=None):
                        ``scale**dim``: the seed's 10 cm blocks hold 0.83-1.17 times
                        their area in discs (002 §1.4, cases 2-4), against ~0.83 for
                        a random packing of touching discs
+    ``area_fraction``  instead of ``scale``: the solid area (volume) over the box
+                       to reach (the seed's UCS specimen: 0.895, 002 §2.1); the
+                       scale is (area_fraction / the specimen's own) ** (1 / dim)
     ``gap_tolerance``  [m] bond every pair whose gap is at most this (overlaps
                        have a negative gap); default: the specimen's own
                        ``info["gap_tolerance"]`` times ``scale`` (the same gap
@@ -156,6 +159,14 @@ def embed(specimen, scale, *, gap_tolerance=None):
     """
     if not isinstance(specimen, Specimen):
         raise InputError("embed takes a jdem.specimen.Specimen (it needs the box)")
+    if (scale is None) == (area_fraction is None):
+        raise InputError(f"embed takes scale or area_fraction, one of them; got scale = "
+                         f"{scale!r}, area_fraction = {area_fraction!r}")
+    if area_fraction is not None:
+        target = finite_number("area_fraction", area_fraction)
+        # Specimen.porosity = 1 - solid / box (jdem.specimen.container)
+        dim = specimen.particles.pos.shape[1]
+        scale = (target / (1.0 - float(specimen.porosity))) ** (1.0 / dim)
     s = finite_number("scale", scale)
     if s < 1.0:
         raise InputError(f"scale must be >= 1 (embedding grows the radii), got {scale!r}")
