@@ -60,15 +60,17 @@ def table(runs):
             "(seed) | fracture degree at peak % (seed) | first break MPa | folder |",
             "|---|---|---|---|---|---|---|---|---|"]
     key = lambda r: (r["boundary"], r["damping"], -r["rate"], r["kappa"])
+    # (run key, format of a value, of the seed's) per column that has a seed figure
+    columns = (("peak", lambda v: f"{v / 1e6:.2f}", lambda v: f"{v / 1e6:.2f}"),
+               ("strain", lambda v: f"{v * 1e6:.0f}", lambda v: f"{v * 1e6:.0f}"),
+               ("fd_peak", lambda v: f"{100 * v:.2f}", lambda v: f"{100 * v:.3g}"))
     for r in sorted(runs, key=key):
         seed = SEED.get(r["kappa"])
-        s = (lambda v, f: f" ({f(v)})") if seed else (lambda v, f: "")
-        rows.append(
-            f"| {r['boundary']} | {r['damping']} | {r['rate']:.3g} | {100 * r['kappa']:g} | "
-            f"{r['peak'] / 1e6:.2f}{s(seed[0] if seed else 0, lambda v: f'{v / 1e6:.2f}')} | "
-            f"{r['strain'] * 1e6:.0f}{s(seed[1] if seed else 0, lambda v: f'{v * 1e6:.0f}')} | "
-            f"{100 * r['fd_peak']:.2f}{s(seed[2] if seed else 0, lambda v: f'{100 * v:.3g}')} | "
-            f"{r['first_break'] / 1e6:.2f} | {r['folder']} |")
+        cells = [ours(r[k]) + (f" ({theirs(seed[n])})" if seed else "")
+                 for n, (k, ours, theirs) in enumerate(columns)]
+        rows.append(f"| {r['boundary']} | {r['damping']} | {r['rate']:.3g} | "
+                    f"{100 * r['kappa']:g} | {' | '.join(cells)} | "
+                    f"{r['first_break'] / 1e6:.2f} | {r['folder']} |")
     return "\n".join(rows)
 
 

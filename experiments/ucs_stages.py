@@ -137,9 +137,10 @@ def main(argv=None):
             for m, k in enumerate(a.kappas)]
     command = "python experiments/ucs_stages.py " + " ".join(
         argv if argv is not None else sys.argv[1:])
+    rate = float(setup.plan.option("loading_rate"))
     out = dict(date=datetime.date.today().isoformat(), command=command, n_discs=n,
                n_bonds=n_bonds, run_s=run_s, rows=rows,
-               loading_rate=float(setup.plan.option("loading_rate")), damping=a.damping,
+               loading_rate=rate, damping=a.damping,
                section=a.section, embed=a.embed, coordination=float(spec.coordination),
                area_fraction=float(spec.info.get("area_fraction", float("nan"))),
                boundary=("free plates" if a.free_plates else "bonded plates") if a.plates
@@ -153,7 +154,7 @@ def main(argv=None):
           f"{out['date']}, `{command}`, float64, 2-core CPU; packing {a.seed}: {n} discs, "
           f"{n_bonds} bonds, {size[0] * 100:g} cm x {size[1] * 100:g} cm, damping {a.damping}, "
           f"bond section {a.section}, "
-          f"loading rate {float(setup.plan.option('loading_rate')):.3g}; "
+          f"loading rate {rate:.3g}; "
           f"{run_s:.0f} s."
           + (f" Loaded through {'free' if a.free_plates else 'bonded'} steel plates "
              f"({spec.info['n_plate_discs']} discs; the break counts include the rock discs' "
