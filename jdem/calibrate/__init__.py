@@ -10,8 +10,9 @@ one or several targets (:mod:`jdem.targets`: curves and scalar figures).
 * Least squares on the residual vector of every target, in a bounded
   transformed space (value = lo (hi/lo)^sigmoid(u), linear when lo <= 0).
 * Solvers: Levenberg-Marquardt (default) or Gauss-Newton from optimistix, with
-  the Jacobian by forward mode (``jax.linearize``; chosen for k <= 8 fitted
-  parameters) or reverse mode; Adam from optax as a first-order alternative.
+  the Jacobian by forward mode (one ``jax.jacfwd`` pass per iteration; chosen
+  for k <= 8 fitted parameters) or reverse mode; Adam from optax as a
+  first-order alternative.
 * The set-ups must be quasi-static (:func:`jdem.lab.certify`), or the fit
   describes the loading rate, not the rock.
 * An ensemble set-up (several packings, one vmapped run) contributes each

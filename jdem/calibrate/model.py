@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jdem.calibrate.result import uncertainty
+from jdem.calibrate.solvers import with_forward_jacobian
 from jdem.calibrate.transform import bounds_for, to_internal, to_value
 from jdem.validate import InputError
 
@@ -76,9 +77,12 @@ def fit_model(model: Callable, data, start: dict, *, bounds: dict | None = None,
         return jnp.concatenate([jnp.ravel((p - d) / s) for p, d, s in zip(pred, data, scales)])
 
     u0 = jnp.asarray([to_internal(float(start[n]), *lims[n]) for n in names])
-    sol = optx.least_squares(residuals, optx.LevenbergMarquardt(rtol=rtol, atol=atol), u0,
-                             options=dict(jac="fwd" if jacobian == "forward" else "bwd"),
-                             max_steps=max_steps, throw=False)
+    fn = lambda u, args: (residuals(u, args), None)
+    if jacobian == "forward":       # one forward-mode pass per iteration (solvers.py)
+        fn = with_forward_jacobian(fn)
+    sol = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol), u0,
+                             has_aux=True, options=dict(jac="bwd"), max_steps=max_steps,
+                             throw=False)
     u = sol.value
     r = residuals(u, None)
     J = (jax.jacfwd if jacobian == "forward" else jax.jacrev)(lambda v: residuals(v, None))(u)

@@ -12,17 +12,85 @@ import numpy as np
 from jdem.calibrate.problem import grow_term, residual_problem
 from jdem.validate import InputError
 
+
+def forward_jacobian(fn, u, args):
+    """``(r, aux, J)``: residuals (n,), aux and Jacobian (n, k) d r / d u of
+    ``fn(u, args)`` by forward mode in one pass (``jax.jacfwd``: the run with k
+    tangents, the primal computed once).  ``jax.linearize`` followed by the k
+    tangents costs one forward run more: through the simulation's while loop it
+    runs the primal, then the primal again with the tangents (measured by
+    experiments/jacobian_cost.py)."""
+    def with_residuals(v):
+        r, aux = fn(v, args)
+        return r, (r, aux)
+
+    J, (r, aux) = jax.jacfwd(with_residuals, has_aux=True)(u)
+    return r, aux, J
+
+
+def _zero_cotangent(x):
+    x = jnp.asarray(x)
+    if jnp.issubdtype(x.dtype, jnp.inexact):
+        return jnp.zeros_like(x)
+    return np.zeros(x.shape, jax.dtypes.float0)
+
+
+def _run_with_jacobian(fn, u, args):
+    import equinox as eqx
+
+    # the arrays of fn (traced under jit) travel as an argument of the custom VJP
+    dynamic, static = eqx.partition(fn, eqx.is_array)
+
+    @jax.custom_vjp
+    def run(dyn, v, a):
+        return eqx.combine(dyn, static)(v, a)
+
+    def run_fwd(dyn, v, a):
+        r, aux, J = forward_jacobian(eqx.combine(dyn, static), v, a)
+        return (r, aux), (dyn, r, J, a)
+
+    def run_bwd(res, ct):
+        dyn, r, J, a = res
+        ct_r, ct_aux = ct
+        g = J.T @ ct_r
+        if isinstance(ct_aux, dict) and "loss" in ct_aux:      # loss = sum r^2
+            g = g + 2.0 * (J.T @ r) * ct_aux["loss"]
+        zero = lambda tree: jax.tree_util.tree_map(_zero_cotangent, tree)
+        return zero(dyn), g, zero(a)
+
+    run.defvjp(run_fwd, run_bwd)
+    return run(dynamic, u, args)
+
+
+def with_forward_jacobian(fn):
+    """``fn(u, args)`` (a ``jax.tree_util.Partial``) whose reverse-mode
+    derivative is one forward-mode pass (:func:`forward_jacobian`), kept as the
+    matrix J: its VJP is J^T times the cotangent.
+
+    Why.  optimistix's Gauss-Newton family with ``jac="fwd"`` linearises ``fn`` at
+    every trial point and applies the linear map three times per iteration: to
+    materialise the Jacobian for the damped solve (k tangents), to predict the
+    trust region's reduction (one tangent) and, after a rejected step, to
+    materialise the old point's Jacobian again.  Through the simulation's while
+    loop each application is a whole run with tangents: ~1.6 Jacobians per
+    iteration (measured by experiments/jacobian_cost.py).  With ``jac="bwd"``
+    optimistix materialises the Jacobian once per trial point by ``jax.jacrev``;
+    with this wrapper that is one forward-mode pass and n small products, so an
+    iteration costs one Jacobian."""
+    return jax.tree_util.Partial(_run_with_jacobian, fn)
+
+
 def _jacobian_impl(fn, u, args, mode):
     if mode == "forward":
-        r, lin = jax.linearize(lambda v: fn(v, args)[0], u)
-        return r, jax.vmap(lin, out_axes=1)(jnp.eye(u.shape[0], dtype=u.dtype))
+        r, _, J = forward_jacobian(fn, u, args)
+        return r, J
     r, vjp = jax.vjp(lambda v: fn(v, args)[0], u)
     return r, jax.vmap(vjp)(jnp.eye(r.shape[0], dtype=r.dtype))[0]
 
 
 def jacobian_at(fn, u, args, mode):
     """Residuals (n,) and Jacobian (n, k) d r / d u at ``u`` as NumPy, by
-    ``mode`` "forward" (``jax.linearize``) or "reverse" (``jax.vjp``)."""
+    ``mode`` "forward" (:func:`forward_jacobian`) or "reverse" (``jax.vjp``)."""
     r, J = compiled_steps()["jacobian"](fn, u, args, mode)
     return np.asarray(r), np.asarray(J)
 
@@ -111,13 +179,20 @@ def least_squares(terms, plist, u, names, lims, record, history, steps, *, metho
 
     solver = (optx.LevenbergMarquardt if method == "lm" else optx.GaussNewton)(rtol=rtol,
                                                                                 atol=atol)
-    options = dict(jac="fwd" if jacobian == "forward" else "bwd")
+    # forward mode goes through optimistix's materialising (jacrev) path with a
+    # forward-mode pass inside (with_forward_jacobian)
+    options = dict(jac="bwd")
     tags = frozenset()
+    problem = residual_problem
+    if jacobian == "forward":
+        def problem(*a):
+            fn, args = residual_problem(*a)
+            return with_forward_jacobian(fn), args
     progress = Progress(min(history["loss"]) if history["loss"] else np.inf, patience,
                         min_improvement)
     k = 0
     while k < steps:
-        fn, args = residual_problem(names, lims, terms, plist)
+        fn, args = problem(names, lims, terms, plist)
         f_struct, aux_struct = jax.eval_shape(fn, u, args)
         compiled = compiled_steps()
         # through the cached jit too: the state holds the linearised function as a
@@ -198,11 +273,7 @@ def adam(terms, plist, u, names, lims, record, history, steps, *, jacobian, lear
 
 def _value_and_grad_impl(fn, u, args, mode):
     if mode == "forward":
-        def with_residuals(v):
-            r, aux = fn(v, args)
-            return r, (r, aux)
-
-        J, (r, aux) = jax.jacfwd(with_residuals, has_aux=True)(u)
+        r, aux, J = forward_jacobian(fn, u, args)
         return jnp.sum(r ** 2), aux, 2.0 * J.T @ r
 
     def loss(v):
