@@ -157,8 +157,8 @@ def main(argv=None):
           f"loading rate {rate:.3g}; "
           f"{run_s:.0f} s."
           + (f" Loaded through {'free' if a.free_plates else 'bonded'} steel plates "
-             f"({spec.info['n_plate_discs']} discs; the break counts include the rock discs' "
-             "bonds to the plates)." if a.plates else ""),
+             f"({spec.info['n_plate_discs']} discs; the break counts are the rock's, "
+             "without its bonds to the plates)." if a.plates else ""),
           "",
           "| kappa % | linear end MPa (seed ~5.9) | first break MPa | peak MPa | peak strain "
           "1e-6 | non-linear / linear rise (seed ~0.2 at 0, > 2 at 2.4 %) | steepest descent "

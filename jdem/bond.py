@@ -462,10 +462,12 @@ def bond_strain_energy(bonds: Bonds, particles: Particles, params: Params, dim: 
     return jnp.sum(jnp.where(live, e, 0.0))
 
 
-def bond_stats(bonds: Bonds) -> dict:
+def bond_stats(bonds: Bonds, counted=None) -> dict:
     """Counts: ``n_bonds`` (valid rows), ``n_broken``, ``n_tension`` / ``n_shear``
-    (broken in mode 1 / 2) and ``fracture_degree`` = n_broken / n_bonds (0 if none)."""
-    valid = bonds.valid
+    (broken in mode 1 / 2) and ``fracture_degree`` = n_broken / n_bonds (0 if none).
+    ``counted`` (B,) bool: count only these rows (the rock's bonds of a specimen
+    with loading plates, :func:`rock_bonds`); default all."""
+    valid = bonds.valid if counted is None else bonds.valid & counted
     broken = valid & bonds.broken
     n_bonds = jnp.sum(valid)
     n_broken = jnp.sum(broken)
@@ -476,3 +478,12 @@ def bond_stats(bonds: Bonds) -> dict:
         "n_shear": jnp.sum(broken & (bonds.break_mode == 2)),
         "fracture_degree": jnp.where(n_bonds > 0, n_broken / jnp.maximum(n_bonds, 1), 0.0),
     }
+
+
+def rock_bonds(bonds: Bonds, particles, plate_material) -> jnp.ndarray:
+    """(B,) bool: bonds with neither end a particle of ``plate_material`` (the
+    discs of loading plates, :func:`jdem.specimen.add_plates`).  The fracture
+    degree is a figure of the rock (002 §2.3): a plate's bonds to the rock are
+    neither in its count nor in its total."""
+    mat = particles.material
+    return (mat[bonds.i] != plate_material) & (mat[bonds.j] != plate_material)

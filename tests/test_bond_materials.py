@@ -199,6 +199,29 @@ def test_plates_are_bonded_lattices_on_the_faces(block):
         y_hi - y_lo + 2 * pl.info["plate_thickness"], rel=1e-12)
 
 
+def test_fracture_degree_of_a_plated_test_counts_the_rocks_bonds_only(block):
+    """002 §2.3's fracture degree is a figure of the rock: in a test with loading
+    plates a broken plate-rock bond is not counted, and the plates' bonds are not
+    in the total."""
+    from jdem.lab.platen import observe
+
+    pl = add_plates(block, rows=1)
+    setup = lab.UCS.setup(pl, rock_params(2, plate_youngs=200e9), precision="float64")
+    b = setup.state.bonds
+    i, j, valid = np.asarray(b.i), np.asarray(b.j), np.asarray(b.valid)
+    n_rock = pl.info["n_rock"]
+    rock = valid & (i < n_rock) & (j < n_rock)
+    assert 0 < np.sum(valid & ~rock) and np.sum(rock) == np.sum(np.asarray(block.bonds.valid))
+    broken = valid & ~rock                      # every plate bond broken in tension
+    broken[np.flatnonzero(rock)[:3]] = True     # and three of the rock's in shear
+    mode = np.where(broken, np.where(rock, 2, 1), 0)
+    state = setup.state._replace(bonds=b._replace(broken=jnp.asarray(broken),
+                                                  break_mode=jnp.asarray(mode, jnp.int32)))
+    rec = observe(state, setup.params, setup.plan.config, setup.frame)
+    assert int(rec["n_broken"]) == 3 and int(rec["n_shear"]) == 3 and int(rec["n_tension"]) == 0
+    assert float(rec["fracture_degree"]) == pytest.approx(3 / np.sum(rock), rel=1e-12)
+
+
 def test_plates_without_plate_plate_bonds_hold_each_face_particle_on_its_own(block):
     """``bond_plate_discs=False`` (the seed's UCS boundary, free sideways): the
     rock's bonds and the same plate-rock bonds as a bonded plate of one row, and no

@@ -315,7 +315,7 @@ def test_calibration_three_parameters_on_the_targets_packing(tmp_path):
     Jacobians ends with E within 1 %, strength within 2 %, kappa within 10 % in at
     most 20 iterations; the result reopens from HDF5.
 
-    Slow (about 6 minutes on two cores; measured E -0.05 %, strength -0.26 %,
+    Slow (about 1 minute on two cores, the fit 45 s; measured E -0.05 %, strength -0.26 %,
     kappa +1.2 % in 20 iterations); the default suite asserts the two-parameter
     recovery of the calibration demo (tests/test_cli.py)."""
     model, params = model_and_params()

@@ -161,9 +161,11 @@ def observe(state, params, config, frame):
     (compressive normal force [N]) and ``wall_area``; ``width``
     (:func:`slice_widths`), ``gauge_change`` (:func:`gauge_change`); ``stress_sum``, the
     averaged-stress sum of :func:`jdem.measure.averaged_stress` with volume 1;
-    bond counts; bond, contact and kinetic energies."""
+    bond counts of the rock (bonds to plate discs, which have the platens'
+    material, not counted); bond, contact and kinetic energies."""
     w = state.walls
-    stats = bond_mod.bond_stats(state.bonds)
+    stats = bond_mod.bond_stats(state.bonds, bond_mod.rock_bonds(state.bonds, state.particles,
+                                                                 w.material[0]))
     axis_of = jnp.argmax(jnp.abs(w.normal), axis=-1)
     return dict(
         step=state.step,

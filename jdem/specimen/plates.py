@@ -71,7 +71,9 @@ def add_plates(specimen, *, rows=2, radius=None, material=1, density=STEEL_DENSI
     ``radius``    plate disc radius [m] (default: the rock's mean radius), adjusted
                   to the nearest that spans the width with touching discs
     ``material``  the plate discs' material index (default 1, the platen material
-                  of :func:`jdem.materials.rock_params`)
+                  of :func:`jdem.materials.rock_params`; the lab tests leave bonds
+                  to particles of the platens' material out of the fracture degree
+                  and the broken-bond counts, which are figures of the rock)
     ``density``   plate density [kg/m^3] (default steel)
     ``attach_gap`` largest gap [m] at which a rock particle is bonded to the plate
                   (default: the rock's mean radius)
