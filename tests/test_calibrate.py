@@ -305,6 +305,12 @@ def test_material_and_bad_names():
     with pytest.raises(InputError, match="outside its bounds"):
         cb.calibrate(model, target_curve(), dict(E=30e9), params=params,
                      bounds={"E": (1e9, 2e9)}, progress=False)
+    # rock_params' placeholder time step instead of the set-up's: refused, since the
+    # run may stay finite while its derivatives blow up (measured: d stress / d log E
+    # ~1e25 MPa after ~55 records)
+    with pytest.raises(InputError, match=r"params\.dt = 1e-08 s, but set-up 0 \(ucs\)"):
+        cb.calibrate(model, target_curve(), dict(E=30e9), params=lt.rock_params(2, kappa=3e-3),
+                     progress=False)
 
 
 # ----------------------------------------------------------------------------- recovery

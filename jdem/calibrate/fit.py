@@ -24,6 +24,21 @@ FORWARD_MODE_MAX = 8
 METHODS = ("lm", "gauss_newton", "adam")
 
 
+def check_time_step(params, terms):
+    """Raise :class:`InputError` when ``params`` carries another time step than a
+    set-up's own: the set-up chose its step for stability at its stiffness
+    margin, and a run with another (``rock_params``' placeholder 1e-8 s, say) can
+    stay finite while its forward-mode derivatives grow without bound."""
+    dt = np.asarray(params.dt, np.float64)
+    for i, t in enumerate(terms):
+        own = np.asarray(t.setup.params.dt, np.float64)
+        if dt.shape not in ((), own.shape) or not np.allclose(dt, own, rtol=1e-6, atol=0.0):
+            raise InputError(
+                f"params.dt = {dt.tolist()!r} s, but set-up {i} ({t.setup.plan.test.name}) "
+                f"runs at {own.tolist()!r} s, the step it chose for stability: pass its own "
+                f"params (setup.params) or leave params out")
+
+
 def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="lm",
               jacobian="auto", steps=30, rtol=1e-4, atol=1e-8, learning_rate=0.1,
               weights=LossWeights(), tol=1e-8, patience=None, min_improvement=1e-3,
@@ -38,6 +53,7 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
                    :class:`~jdem.targets.Scalar` or tuple of them; a list, one per set-up
     start          name -> starting value (names from ``PARAMETERS``)
     params         the other parameters; default each set-up's own ``params``
+                   (another time step than the set-up's is refused: :func:`check_time_step`)
     bounds         name -> (lo, hi); default ``DEFAULT_BOUNDS`` or start / 5 .. start x 5
     method         "lm" (Levenberg-Marquardt), "gauss_newton" or "adam"
     jacobian       "forward", "reverse" or "auto" (forward for <= 8 parameters)
@@ -77,6 +93,8 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
         raise InputError(f"jacobian must be 'forward', 'reverse' or 'auto', got {jacobian!r}")
     lims = {n: bounds_for(n, float(start[n]), bounds) for n in names}
     plist = [t.setup.params if params is None else params for t in terms]
+    if params is not None:
+        check_time_step(params, terms)
     history = {"loss": [], **{n: [] for n in names}}
     done = 0
     values0 = {n: float(start[n]) for n in names}
