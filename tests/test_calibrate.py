@@ -679,6 +679,25 @@ def test_recovery_three_parameters_on_a_different_packing():
     assert abs(res.values["kappa"] / TRUE["kappa"] - 1) < 0.15
 
 
+def test_the_forward_jacobian_wrapper_has_the_exact_reverse_derivative():
+    """with_forward_jacobian (what Levenberg-Marquardt differentiates): its VJP
+    J^T ct, by jax.jacrev, is the Jacobian by jax.jacfwd of the plain function,
+    and the loss in its aux gets 2 J^T r; values unchanged."""
+    from jdem.calibrate.solvers import with_forward_jacobian
+
+    def fn(u, a):
+        r = jnp.stack([jnp.sin(u[0]) * a["c"], u[0] * u[1] ** 2, jnp.exp(-u[1])])
+        return r, dict(loss=jnp.sum(r ** 2), ok=jnp.array([True]))
+
+    u, args = jnp.asarray([0.3, -1.2]), dict(c=jnp.asarray(2.0))
+    wrapped = with_forward_jacobian(fn)
+    np.testing.assert_allclose(wrapped(u, args)[0], fn(u, args)[0], rtol=0, atol=0)
+    exact = jax.jacfwd(lambda v: fn(v, args)[0])(u)
+    np.testing.assert_allclose(jax.jacrev(lambda v: wrapped(v, args)[0])(u), exact, rtol=1e-12)
+    np.testing.assert_allclose(jax.grad(lambda v: wrapped(v, args)[1]["loss"])(u),
+                               jax.grad(lambda v: fn(v, args)[1]["loss"])(u), rtol=1e-12)
+
+
 def test_fit_model_recovers_an_oscillator_and_reports_what_the_data_do_not_fix():
     """jdem.calibrate.fit_model on a closed-form model: the frequency and decay
     of a damped oscillation are recovered from -30 % / +40 % starts, and a

@@ -63,16 +63,17 @@ def _run_with_jacobian(fn, u, args):
 
 
 def with_forward_jacobian(fn):
-    """``fn(u, args)`` (a ``jax.tree_util.Partial``) whose reverse-mode
-    derivative is one forward-mode pass (:func:`forward_jacobian`), kept as the
-    matrix J: its VJP is J^T times the cotangent.
+    """``fn(u, args) -> (residuals, aux)`` whose reverse-mode derivative is one
+    forward-mode pass (:func:`forward_jacobian`), kept as the matrix J: its VJP
+    is J^T times the cotangent (and 2 J^T r times that of ``aux["loss"]``, the
+    sum of squares, if aux has one).  Returned as a ``jax.tree_util.Partial``.
 
     Why.  optimistix's Gauss-Newton family with ``jac="fwd"`` linearises ``fn`` at
     every trial point and applies the linear map three times per iteration: to
     materialise the Jacobian for the damped solve (k tangents), to predict the
     trust region's reduction (one tangent) and, after a rejected step, to
     materialise the old point's Jacobian again.  Through the simulation's while
-    loop each application is a whole run with tangents: ~1.6 Jacobians per
+    loop each application is a whole run with tangents: 1.6-1.9 Jacobians per
     iteration (measured by experiments/jacobian_cost.py).  With ``jac="bwd"``
     optimistix materialises the Jacobian once per trial point by ``jax.jacrev``;
     with this wrapper that is one forward-mode pass and n small products, so an
