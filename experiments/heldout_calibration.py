@@ -30,6 +30,7 @@ import datetime
 import json
 import pathlib
 import platform
+import sys
 import time
 
 import jax
@@ -101,10 +102,10 @@ def main(argv=None):
     out = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="minutes"),
                machine=f"{platform.machine()} {platform.platform()}",
                command="python experiments/heldout_calibration.py "
-                       + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+                       + " ".join(argv if argv is not None else sys.argv[1:]),
                target_seed=a.target_seed, target_discs=n_target, member_discs=n_members,
-               loading_rate=a.loading_rate, post_peak_weight=a.post_peak, iterations=res.steps, stop=res.stop,
-               loss=res.loss, wall_s=wall, rows=rows, check_passed=passed)
+               loading_rate=a.loading_rate, post_peak_weight=a.post_peak,
+               iterations=res.steps, stop=res.stop, loss=res.loss, wall_s=wall, rows=rows, check_passed=passed)
     (a.out / "heldout_calibration.json").write_text(json.dumps(out, indent=1))
     md = ["# Calibration on packings the target was not made on", "",
           f"{out['date']}, {out['machine']}, float32; `{out['command']}`", "",

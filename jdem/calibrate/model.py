@@ -13,12 +13,11 @@ from __future__ import annotations
 
 from typing import Callable, NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jdem.calibrate.result import uncertainty
-from jdem.calibrate.solvers import with_forward_jacobian
+from jdem.calibrate.solvers import jacobian_at, with_forward_jacobian
 from jdem.calibrate.transform import bounds_for, to_internal, to_value
 from jdem.validate import InputError
 
@@ -77,17 +76,15 @@ def fit_model(model: Callable, data, start: dict, *, bounds: dict | None = None,
         return jnp.concatenate([jnp.ravel((p - d) / s) for p, d, s in zip(pred, data, scales)])
 
     u0 = jnp.asarray([to_internal(float(start[n]), *lims[n]) for n in names])
-    fn = lambda u, args: (residuals(u, args), None)
-    if jacobian == "forward":       # one forward-mode pass per iteration (solvers.py)
-        fn = with_forward_jacobian(fn)
+    plain = lambda u, args: (residuals(u, args), None)
+    # forward mode: one forward-mode pass per iteration (solvers.with_forward_jacobian)
+    fn = with_forward_jacobian(plain) if jacobian == "forward" else plain
     sol = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol), u0,
                              has_aux=True, options=dict(jac="bwd"), max_steps=max_steps,
                              throw=False)
     u = sol.value
-    r = residuals(u, None)
-    J = (jax.jacfwd if jacobian == "forward" else jax.jacrev)(lambda v: residuals(v, None))(u)
-    std, ci, corr, why = uncertainty(np.asarray(J), np.asarray(r), np.asarray(u), names, lims,
-                                     int(r.size))
+    r, J = jacobian_at(plain, u, None, jacobian)      # residuals and Jacobian in one pass
+    std, ci, corr, why = uncertainty(J, r, np.asarray(u), names, lims, int(r.size))
     values = {n: float(v) for n, v in values_of(u).items()}
     return ModelFit(values, std, ci, corr, why, float(jnp.sum(r * r)),
                     int(sol.stats["num_steps"]), bool(sol.result == optx.RESULTS.successful))

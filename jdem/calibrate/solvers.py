@@ -184,20 +184,16 @@ def least_squares(terms, plist, u, names, lims, record, history, steps, *, metho
     # forward-mode pass inside (with_forward_jacobian)
     options = dict(jac="bwd")
     tags = frozenset()
-    problem = residual_problem
-    if jacobian == "forward":
-        def problem(*a):
-            fn, args = residual_problem(*a)
-            return with_forward_jacobian(fn), args
     progress = Progress(min(history["loss"]) if history["loss"] else np.inf, patience,
                         min_improvement)
     k = 0
     while k < steps:
-        fn, args = problem(names, lims, terms, plist)
+        fn, args = residual_problem(names, lims, terms, plist)
+        if jacobian == "forward":
+            fn = with_forward_jacobian(fn)
         f_struct, aux_struct = jax.eval_shape(fn, u, args)
         compiled = compiled_steps()
-        # through the cached jit too: the state holds the linearised function as a
-        # jaxpr, which the step's cache compares by identity
+        # the state through the cached jit too, built as the cached step expects it
         state = compiled["init"](solver, fn, u, args, options, f_struct, aux_struct, tags)
         step = functools.partial(compiled["step"], solver, fn)
         terminate = functools.partial(compiled["terminate"], solver, fn)
