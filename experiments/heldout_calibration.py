@@ -16,7 +16,7 @@ the packing scatter, not the rate, is what the check measures; on a GPU pass
 ``--loading-rate 4e-6``.  The certificate is not required at a faster rate.
 
     python experiments/heldout_calibration.py [--members 4] [--loading-rate 3.2e-5]
-        [--steps 15] [--size 0.0125 0.025] [--post-peak 1]
+        [--steps 15] [--size 0.0125 0.025] [--post-peak 1] [--jacobian auto]
         [--out experiments/results/heldout_calibration]
 
 Writes ``heldout_calibration.md`` and ``.json`` (values, intervals, errors,
@@ -66,6 +66,9 @@ def main(argv=None):
     ap.add_argument("--post-peak", type=float, default=1.0,
                     help="weight of the post-peak curve (LossWeights.post_peak; 0 fits the "
                          "curve up to the peak and the peak, as the README demo does)")
+    ap.add_argument("--jacobian", default="auto",
+                    help="calibrate's jacobian: auto (forward mode), forward, reverse or "
+                         "finite-difference (central differences, for the post-peak curve)")
     ap.add_argument("--out", type=pathlib.Path, default=HERE / "results" / "heldout_calibration")
     a = ap.parse_args(argv)
     if a.target_seed in range(a.members):
@@ -86,7 +89,7 @@ def main(argv=None):
     ensemble = lab.UCS.setup(members, params, **kw)
     # the set-up's own params (its time step and damping), the fitted values replaced
     res = cb.calibrate(ensemble, target, START, steps=a.steps,
-                       weights=cb.LossWeights(post_peak=a.post_peak),
+                       weights=cb.LossWeights(post_peak=a.post_peak), jacobian=a.jacobian,
                        out=a.out / "calibration.h5",
                        require_quasi_static=a.loading_rate <= DEFAULT_LOADING_RATE)
     wall = time.time() - t0
@@ -96,6 +99,8 @@ def main(argv=None):
         lo, hi = res.intervals[n]
         rows[n] = dict(true=TRUE[n], start=START[n], fitted=res.values[n],
                        error=res.values[n] / TRUE[n] - 1.0, interval=[lo, hi],
+                       std_error=res.std_errors[n],
+                       packing_std_error=res.packing_std_errors.get(n, float("nan")),
                        inside=bool(lo <= TRUE[n] <= hi))
     passed = (all(r["inside"] for r in rows.values())
               and all(abs(rows[n]["error"]) < tol for n, tol in TOLERANCE.items()))
@@ -105,6 +110,7 @@ def main(argv=None):
                        + " ".join(argv if argv is not None else sys.argv[1:]),
                target_seed=a.target_seed, target_discs=n_target, member_discs=n_members,
                loading_rate=a.loading_rate, post_peak_weight=a.post_peak,
+               jacobian=res.jacobian,
                iterations=res.steps, stop=res.stop, loss=res.loss, wall_s=wall, rows=rows, check_passed=passed)
     (a.out / "heldout_calibration.json").write_text(json.dumps(out, indent=1))
     md = ["# Calibration on packings the target was not made on", "",
@@ -112,13 +118,15 @@ def main(argv=None):
           f"Target: packing {a.target_seed} ({n_target} discs) at E 30 GPa, strength 3 MPa, "
           f"kappa 3e-3; fitted on packings 0-{a.members - 1} ({n_members} discs) as one "
           f"ensemble; loading rate {a.loading_rate:g} for both; post-peak weight "
-          f"{a.post_peak:g}; {res.steps} iterations "
+          f"{a.post_peak:g}; {res.jacobian} Jacobian; {res.steps} iterations "
           f"({res.stop}), loss {res.loss:.3g}, {wall / 60:.1f} min in all.", "",
-          "| parameter | true | start | fitted | error | 95 % interval | truth inside |",
-          "|---|---|---|---|---|---|---|"]
+          "| parameter | true | start | fitted | error | standard error (packings) | "
+          "95 % interval | truth inside |",
+          "|---|---|---|---|---|---|---|---|"]
     for n, r in rows.items():
         md.append(f"| {n} | {r['true']:.4g} | {r['start']:.4g} | {r['fitted']:.4g} | "
-                  f"{r['error'] * 100:+.2f} % | {r['interval'][0]:.4g} .. {r['interval'][1]:.4g} | "
+                  f"{r['error'] * 100:+.2f} % | {r['std_error']:.3g} ({r['packing_std_error']:.3g}) | "
+                  f"{r['interval'][0]:.4g} .. {r['interval'][1]:.4g} | "
                   f"{'yes' if r['inside'] else 'no'} |")
     md += ["", f"Check (truth inside every interval, E within 5 %, strength within 8 %): "
                f"{'passed' if passed else 'not passed'}."]

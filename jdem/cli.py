@@ -349,7 +349,7 @@ CALIBRATE_DEFAULTS = {
     "material": dict(UCS_DEFAULTS["material"]),
     "loading": dict(UCS_DEFAULTS["loading"], max_strain=None),
     "fit": dict(parameters=["E", "strength"], method="lm", steps=20, bounds={},
-                require_quasi_static=True, extrapolate_rate=False),
+                require_quasi_static=True, extrapolate_rate=False, jacobian="auto"),
 }
 # --small: a ~100-disc specimen at a fast, uncertified rate (a smoke test of the user's
 # CSV and TOML); replaces these, also where the file sets them
@@ -387,6 +387,9 @@ def calibrate_settings(config_path=None, small=False) -> dict:
     if fit["method"] not in ("lm", "gauss_newton", "adam"):
         raise InputError(f"fit.method must be \"lm\", \"gauss_newton\" or \"adam\", got "
                          f"{fit['method']!r}")
+    jacobians = ("auto", "forward", "reverse", "finite-difference")
+    if fit["jacobian"] not in jacobians:
+        raise InputError(f"fit.jacobian must be one of {jacobians}, got {fit['jacobian']!r}")
     _number("fit.steps", fit["steps"], lo=1, integer=True)
     if not isinstance(fit["bounds"], dict):
         raise InputError(f"fit.bounds must be a table name = [lo, hi], got {fit['bounds']!r}")
@@ -460,6 +463,7 @@ def calibrate_cli(curve, config=None, out="results/calibrate", small=False, prog
                               steps=fit["steps"], progress=progress, out=result,
                               require_quasi_static=fit["require_quasi_static"],
                               extrapolate_rate=fit["extrapolate_rate"],
+                              jacobian=fit["jacobian"],
                               resume=_resume_file(result.with_suffix(".checkpoint.h5"), resume))
     plot.plot_calibration(res, out / "calibration.png")
     print(calibrate.report(res))

@@ -28,7 +28,8 @@ def test_demo_writes_plots_and_hdf5(tmp_path):
 
 def test_calibrate_command_fits_a_csv_curve(tmp_path, capsys):
     """``jdem calibrate CURVE.csv --config cfg.toml --small``: E from +30 % back to
-    the value the CSV curve was simulated with (within 2 %), a PNG report and an
+    the value the CSV curve was simulated with (within 2 %; the config asks for the
+    finite-difference Jacobian, so that path runs end to end), a PNG report and an
     HDF5 result that reopens; a CSV in percent strain stops with exit code 2
     and a message naming the unit."""
     from jdem import calibrate
@@ -39,12 +40,12 @@ def test_calibrate_command_fits_a_csv_curve(tmp_path, capsys):
                                                  zip(curve["strain"], curve["stress"])))
     cfg = tmp_path / "cal.toml"
     cfg.write_text('[material]\nE = 39e9\n[fit]\nparameters = ["E"]\nsteps = 8\n'
-                   '[fit.bounds]\nE = [10e9, 80e9]\n')
+                   'jacobian = "finite-difference"\n[fit.bounds]\nE = [10e9, 80e9]\n')
     assert cli.main(["calibrate", str(csv), "--config", str(cfg), "--small",
                      "--out", str(tmp_path / "out")]) == 0
     back = calibrate.load_calibration(tmp_path / "out" / "calibration.h5")
     assert abs(back["values"]["E"] / true["E"] - 1) < 0.02
-    assert back["std_errors"]["E"] > 0
+    assert back["std_errors"]["E"] > 0 and back["jacobian"] == "finite-difference"
     assert (tmp_path / "out" / "calibration.png").stat().st_size > 10_000
     assert "E " in capsys.readouterr().out
     pct = tmp_path / "pct.csv"

@@ -201,3 +201,21 @@ def test_rate_extrapolation_settings_are_checked(tmp_path):
     assert calibrate_settings(cfg)["fit"]["extrapolate_rate"] is True
     with pytest.raises(jdem.InputError, match="rate_factor .* got 1.0"):
         calibrate.calibrate(None, None, dict(E=3e10), rate_factor=1.0)
+
+
+def test_calibrate_jacobian_setting_is_checked(tmp_path):
+    """``[fit] jacobian`` names a mode calibrate knows; ``fd_step`` lies in (0, 1)."""
+    from jdem import calibrate
+    from jdem.cli import calibrate_settings
+
+    cfg = tmp_path / "fit.toml"
+    cfg.write_text('[fit]\njacobian = "secant"\n')
+    with pytest.raises(jdem.InputError, match=r"fit.jacobian .*'secant'"):
+        calibrate_settings(cfg)
+    cfg.write_text('[fit]\njacobian = "finite-difference"\n')
+    assert calibrate_settings(cfg)["fit"]["jacobian"] == "finite-difference"
+    assert calibrate_settings(None)["fit"]["jacobian"] == "auto"
+    with pytest.raises(jdem.InputError, match="jacobian must be one of"):
+        calibrate.calibrate(None, None, dict(E=3e10), jacobian="secant")
+    with pytest.raises(jdem.InputError, match="fd_step .* got 2"):
+        calibrate.calibrate(None, None, dict(E=3e10), fd_step=2)

@@ -11,7 +11,9 @@ one or several targets (:mod:`jdem.targets`: curves and scalar figures).
   transformed space (value = lo (hi/lo)^sigmoid(u), linear when lo <= 0).
 * Solvers: Levenberg-Marquardt (default) or Gauss-Newton from optimistix, with
   the Jacobian by forward mode (one ``jax.jacfwd`` pass per iteration; chosen
-  for k <= 8 fitted parameters) or reverse mode; Adam from optax as a
+  for k <= 8 fitted parameters), reverse mode or central finite differences
+  (for post-peak curves of large specimens, where the exact derivative through
+  the break cascade is too large to steer by); Adam from optax as a
   first-order alternative.
 * The set-ups must be quasi-static (:func:`jdem.lab.certify`), or the fit
   describes the loading rate, not the rock.
@@ -20,7 +22,9 @@ one or several targets (:mod:`jdem.targets`: curves and scalar figures).
   count as a 100 % misfit, so the solver steps back instead of stopping.
 * Every iteration is written to a checkpoint; ``resume=`` continues from it.
 * At the optimum: standard errors, 95 % intervals and the correlation matrix from
-  the Gauss-Newton approximation, and the parameters the data do not determine.
+  the Gauss-Newton approximation plus, for an ensemble, the spread of the fit
+  from packing to packing (what a specimen outside the ensemble would move it
+  by), and the parameters the data do not determine.
 
 Modules
 -------
@@ -40,6 +44,6 @@ from jdem.calibrate.transform import DEFAULT_BOUNDS, DEFAULT_FACTOR  # noqa: F40
 from jdem.calibrate.problem import Term, calibration_loss, peakless, term_residuals  # noqa: F401
 from jdem.calibrate.result import (CalibrationResult, load_calibration, report,  # noqa: F401
                                    save_calibration)
-from jdem.calibrate.fit import FORWARD_MODE_MAX, METHODS, calibrate  # noqa: F401
+from jdem.calibrate.fit import FORWARD_MODE_MAX, JACOBIANS, METHODS, calibrate  # noqa: F401
 from jdem.calibrate.model import ModelFit, fit_model  # noqa: F401
 from jdem.calibrate.demo import DEMO_TRUE, demo_problem  # noqa: F401

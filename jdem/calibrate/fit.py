@@ -10,10 +10,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from jdem import lab
-from jdem.calibrate.problem import make_terms, n_data, peakless, residual_problem
+from jdem.calibrate.problem import (make_terms, member_blocks, n_data, peakless,
+                                    residual_problem, residuals_per_member)
 from jdem.calibrate.result import (CalibrationResult, fitted_curves, load_calibration,
                                    merge_curves, partial_result, save_calibration, uncertainty)
-from jdem.calibrate.solvers import adam, jacobian_at, least_squares
+from jdem.calibrate.solvers import FD_STEP, adam, jacobian_at, least_squares
 from jdem.calibrate.transform import bounds_for, to_internal, to_value
 from jdem.materials import check_names, material
 from jdem.targets import LossWeights
@@ -22,6 +23,7 @@ from jdem.validate import InputError
 #: forward-mode Jacobians up to this many fitted parameters, reverse mode beyond
 FORWARD_MODE_MAX = 8
 METHODS = ("lm", "gauss_newton", "adam")
+JACOBIANS = ("forward", "reverse", "finite-difference")
 
 
 def check_time_step(params, terms):
@@ -44,7 +46,7 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
               weights=LossWeights(), tol=1e-8, patience=None, min_improvement=1e-3,
               progress=True, out=None, checkpoint=None, resume=None,
               require_quasi_static=True, extrapolate_rate=False,
-              rate_factor=2.0) -> CalibrationResult:
+              rate_factor=2.0, fd_step=FD_STEP) -> CalibrationResult:
     """Fit the named parameters of ``start`` to ``target``.
 
     setup          a :class:`jdem.lab.Setup` (e.g. ``jdem.lab.UCS.setup(specimen,
@@ -56,7 +58,12 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
                    (another time step than the set-up's is refused: :func:`check_time_step`)
     bounds         name -> (lo, hi); default ``DEFAULT_BOUNDS`` or start / 5 .. start x 5
     method         "lm" (Levenberg-Marquardt), "gauss_newton" or "adam"
-    jacobian       "forward", "reverse" or "auto" (forward for <= 8 parameters)
+    jacobian       "forward", "reverse" or "auto" (forward for <= 8 parameters), or
+                   "finite-difference": central differences over ``fd_step`` in the
+                   internal coordinate (2k + 1 runs per iteration), for a curve past the
+                   peak of a large specimen, where the exact derivative through the
+                   break cascade is too large to steer by
+                   (:func:`jdem.calibrate.solvers.finite_difference_jacobian`)
     steps          at most this many iterations
     rtol, atol     the least-squares solvers' tolerances (on u and on the loss)
     learning_rate  Adam's step in u (cosine decay to 5 % over ``steps``)
@@ -81,6 +88,11 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
     if patience is None:
         patience = 20 if method == "adam" else 3
     check_names(start)
+    if jacobian not in JACOBIANS + ("auto",):
+        raise InputError(f"jacobian must be one of {JACOBIANS} or 'auto', got {jacobian!r}")
+    if not (isinstance(fd_step, (int, float)) and 0 < fd_step < 1):
+        raise InputError(f"fd_step must be a number in (0, 1) (internal coordinate), "
+                         f"got {fd_step!r}")
     if not (isinstance(rate_factor, (int, float)) and rate_factor > 1):
         raise InputError(f"rate_factor must be a number above 1, got {rate_factor!r}")
     terms = make_terms(setup, target, weights, extrapolate_rate=extrapolate_rate,
@@ -89,8 +101,6 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
     k = len(names)
     if jacobian == "auto":
         jacobian = "forward" if k <= FORWARD_MODE_MAX else "reverse"
-    if jacobian not in ("forward", "reverse"):
-        raise InputError(f"jacobian must be 'forward', 'reverse' or 'auto', got {jacobian!r}")
     lims = {n: bounds_for(n, float(start[n]), bounds) for n in names}
     plist = [t.setup.params if params is None else params for t in terms]
     if params is not None:
@@ -153,15 +163,19 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
         stop, why_stopped, terms = stepper(
             terms, plist, u, names, lims, record, history, steps - done, method=method,
             jacobian=jacobian, rtol=rtol, atol=atol, learning_rate=learning_rate, tol=tol,
-            patience=patience, min_improvement=min_improvement)
+            patience=patience, min_improvement=min_improvement, fd_step=fd_step)
     finally:
         if bar is not None:
             bar.close()
     # uncertainty and curves at the best point
     ub = jnp.asarray([to_internal(best[1][n], *lims[n]) for n in names])
     fn, args = residual_problem(names, lims, terms, plist)
-    r, J = jacobian_at(fn, ub, args, jacobian)
-    std, intervals, corr, why = uncertainty(J, r, np.asarray(ub), names, lims, n_points)
+    r, J, aux = jacobian_at(fn, ub, args, jacobian, step=fd_step, with_aux=True)
+    blocks = member_blocks(terms, aux["ok"])
+    expected = sum(t.setup.n_members * residuals_per_member(t) for t in terms)
+    if r.size != expected:      # the member blocks would be misplaced
+        raise RuntimeError(f"{r.size} residuals, not the {expected} the terms' targets imply")
+    unc = uncertainty(J, r, np.asarray(ub), names, lims, n_points, blocks)
     curves1 = fitted_curves(terms, plist, best[1])
     doubts = peakless(terms, [h for h, _ in curves1])
     if stop == "stalled":
@@ -176,8 +190,10 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
                             steps=len(history["loss"]), converged=stop == "converged",
                             stop=stop, params=fitted,
                             curves=curves, wall_time=time.time() - t0, method=method,
-                            jacobian=jacobian, std_errors=std, intervals=intervals,
-                            correlation=corr, poorly_determined=why, diverged=diverged,
+                            jacobian=jacobian, std_errors=unc.std,
+                            packing_std_errors=unc.packing_std, intervals=unc.intervals,
+                            correlation=unc.correlation,
+                            poorly_determined=unc.poorly_determined, diverged=diverged,
                             warnings=doubts)
     if out is not None:
         save_calibration(out, res)

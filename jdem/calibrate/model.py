@@ -84,7 +84,7 @@ def fit_model(model: Callable, data, start: dict, *, bounds: dict | None = None,
                              throw=False)
     u = sol.value
     r, J = jacobian_at(plain, u, None, jacobian)      # residuals and Jacobian in one pass
-    std, ci, corr, why = uncertainty(J, r, np.asarray(u), names, lims, int(r.size))
+    std, ci, corr, why, _ = uncertainty(J, r, np.asarray(u), names, lims, int(r.size))
     values = {n: float(v) for n, v in values_of(u).items()}
     return ModelFit(values, std, ci, corr, why, float(jnp.sum(r * r)),
                     int(sol.stats["num_steps"]), bool(sol.result == optx.RESULTS.successful))

@@ -148,6 +148,32 @@ def peakless(terms, histories) -> list:
     return out
 
 
+def residuals_per_member(term) -> int:
+    """How many residuals one member of ``term`` contributes
+    (:func:`jdem.targets.curve_residuals`: the points, the peak and the modulus,
+    and the points again with a lateral-strain target; or one per figure)."""
+    if isinstance(term.target, Target):
+        n = len(term.target.strain)
+        return 2 * n + 2 if term.target.lateral_strain is not None else n + 2
+    return len(term.target)
+
+
+def member_blocks(terms, ok):
+    """One :class:`jdem.calibrate.result.MemberBlock` per ensemble term (a set-up
+    of several members): where its members' residuals lie in the residual vector
+    of :func:`residual_fn`, and ``ok`` (that function's aux ``ok``, one flags
+    array per term) for the members that did not diverge."""
+    from jdem.calibrate.result import MemberBlock
+
+    out, start = [], 0
+    for term, flags in zip(terms, ok):
+        members, size = term.setup.n_members, residuals_per_member(term)
+        if term.setup.plan.batched and members > 1:
+            out.append(MemberBlock(start, members, size, np.asarray(flags, bool)))
+        start += members * size
+    return out
+
+
 def n_data(term):
     """The residuals of ``term`` that carry data (curve points or figures, times
     the members of an ensemble)."""
