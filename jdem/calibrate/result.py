@@ -171,8 +171,8 @@ def uncertainty(J, r, u, names, lims, n_fit, blocks=()) -> Uncertainty:
     std, intervals, packing = {}, {}, {}
     for i, n in enumerate(names):
         v1, v2 = max(float(cov_fit[i, i]), 0.0), float(sd_pack[i]) ** 2
-        with np.errstate(invalid="ignore", divide="ignore"):
-            dof = (v1 + v2) ** 2 / (v1 ** 2 / dof_fit + v2 ** 2 / dof_pack)
+        den = v1 ** 2 / dof_fit + (v2 ** 2 / dof_pack if v2 > 0 else 0.0)
+        dof = (v1 + v2) ** 2 / den if den > 0 else float(dof_fit)   # Welch-Satterthwaite
         q = float(stats.t.ppf(0.975, dof)) if np.isfinite(dof) and dof > 0 else 1.96
         v = values[n]
         if log_space(lims[n][0]):

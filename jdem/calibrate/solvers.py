@@ -36,8 +36,11 @@ FD_STEP = 0.02
 
 def finite_difference_jacobian(fn, u, args, step=FD_STEP):
     """``(r, aux, J)`` as :func:`forward_jacobian`, J by central differences
-    (fn(u + h e_i) - fn(u - h e_i)) / 2h, the 2k shifted runs vmapped into one
-    call: 2k + 1 runs.
+    (fn(u + h e_i) - fn(u - h e_i)) / 2h: 2k + 1 runs.  The 2k shifted runs go
+    one after another (``jax.lax.map``), not vmapped: under a vmap the
+    simulation's un-batched conditionals (the neighbour rebuild of a batch, the
+    bond law's branch, :func:`jdem.integrate.step_batched`) would take batched
+    predicates and run both branches every step.
 
     What for.  Past the peak of a specimen of ~1,000 discs every bond break
     moves the ones after it, and the exact (pathwise) derivative grows with each
@@ -50,7 +53,7 @@ def finite_difference_jacobian(fn, u, args, step=FD_STEP):
     overflowed, a member ``ok`` only if it ran in all of them."""
     r, aux = fn(u, args)
     shifts = step * jnp.eye(u.shape[0], dtype=u.dtype)
-    rs, auxs = jax.vmap(lambda v: fn(v, args))(jnp.concatenate([u + shifts, u - shifts]))
+    rs, auxs = jax.lax.map(lambda v: fn(v, args), jnp.concatenate([u + shifts, u - shifts]))
     k = u.shape[0]
     J = ((rs[:k] - rs[k:]) / (2.0 * step)).T
     if isinstance(aux, dict) and "overflowed" in aux:
