@@ -17,9 +17,10 @@ one or several targets (:mod:`jdem.targets`: curves and scalar figures).
   first-order alternative.
 * The set-ups must be quasi-static (:func:`jdem.lab.certify`), or the fit
   describes the loading rate, not the rock.
-* An ensemble set-up (several packings, one vmapped run) contributes each
-  member's residuals; a member that diverges is reported and its residuals
-  count as a 100 % misfit, so the solver steps back instead of stopping.
+* An ensemble set-up (several packings, one vmapped run) contributes its
+  members' mean residuals (the mean curve against the target); a member that
+  diverges is reported and its residuals count as a 100 % misfit, so the
+  solver steps back instead of stopping.
 * Every iteration is written to a checkpoint; ``resume=`` continues from it.
 * At the optimum: standard errors, 95 % intervals and the correlation matrix from
   the Gauss-Newton approximation plus, for an ensemble, the spread of the fit

@@ -171,8 +171,8 @@ def calibrate(setup, target, start: dict, *, params=None, bounds=None, method="l
     ub = jnp.asarray([to_internal(best[1][n], *lims[n]) for n in names])
     fn, args = residual_problem(names, lims, terms, plist)
     r, J, aux = jacobian_at(fn, ub, args, jacobian, step=fd_step, with_aux=True)
-    blocks = member_blocks(terms, aux["ok"])
-    expected = sum(t.setup.n_members * residuals_per_member(t) for t in terms)
+    blocks = member_blocks(terms, aux["ok"], aux["members"])
+    expected = sum(residuals_per_member(t) for t in terms)
     if r.size != expected:      # the member blocks would be misplaced
         raise RuntimeError(f"{r.size} residuals, not the {expected} the terms' targets imply")
     unc = uncertainty(J, r, np.asarray(ub), names, lims, n_points, blocks)

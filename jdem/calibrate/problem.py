@@ -71,26 +71,35 @@ def _member_residuals(hist, term: Term):
 
 
 def term_residuals(hist: dict, term: Term):
-    """Residuals of one term from its pure-run history, and (members,) flags of
-    the members that ran without diverging.  An ensemble's residuals are each
-    member's over sqrt(members) (so the loss is the mean over members); a
-    diverged member's residuals are set to 1 (a 100 % misfit)."""
+    """Residuals of one term from its pure-run history: ``(r, ok, members)``.
+
+    ``members`` (members, n) holds each member's residuals, a diverged member's
+    set to 1 (a 100 % misfit, so the solver steps back); ``ok`` (members,) flags
+    the members that ran without diverging; ``r`` (n,) is the members' mean,
+    what an ensemble is fitted with: the ensemble's mean curve (and mean peak
+    and modulus) against the target.  The members' spread about that mean is
+    not part of the loss: it would fall for parameters that make the packings
+    alike (measured by experiments/heldout_losses.py) and pull the fit there; it
+    goes into the intervals instead (:func:`jdem.calibrate.result.packing_covariance`)."""
     if term.setup.plan.batched:
-        r = jax.vmap(lambda h: _member_residuals(h, term))(
+        members = jax.vmap(lambda h: _member_residuals(h, term))(
             {k: v for k, v in hist.items() if jnp.ndim(v) >= 2})
-        ok = (hist["member_first_bad_step"] < 0) & jnp.all(jnp.isfinite(r), axis=1)
-        r = jnp.where(ok[:, None], r, 1.0) / math.sqrt(r.shape[0])
-        return r.ravel(), ok
+        ok = (hist["member_first_bad_step"] < 0) & jnp.all(jnp.isfinite(members), axis=1)
+        members = jnp.where(ok[:, None], members, 1.0)
+        return jnp.mean(members, axis=0), ok, members
     r = _member_residuals(hist, term)
     ok = (hist["first_bad_step"] < 0) & jnp.all(jnp.isfinite(r))
-    return jnp.where(ok, r, 1.0), ok[None]
+    r = jnp.where(ok, r, 1.0)
+    return r, ok[None], r[None]
 
 
 def residual_fn(u, args, *, names, lims, terms):
     """fn(u, args) -> (residuals, aux) with args = ((setup, slow set-up or None,
-    params), ...) per term."""
+    params), ...) per term: the terms' residuals (:func:`term_residuals`, an
+    ensemble's the members' mean) concatenated; aux ``overflowed`` (terms,),
+    ``ok`` and ``members`` (per term, as :func:`term_residuals`) and ``loss``."""
     vals = {n: to_value(u[i], *lims[n]) for i, n in enumerate(names)}
-    rs, over, ok = [], [], []
+    rs, over, ok, members = [], [], [], []
     for term, (setup, slow, params) in zip(terms, args):
         prm = material(params, vals)
         hist = lab.curve(setup, prm).history
@@ -99,12 +108,14 @@ def residual_fn(u, args, *, names, lims, terms):
             hist_slow = lab.curve(slow, prm).history
             hist = lab.extrapolated_history(hist, hist_slow, term.factor)
             overflowed = overflowed | hist_slow["overflowed"]
-        r, good = term_residuals(hist, term)
+        r, good, each = term_residuals(hist, term)
         rs.append(r)
         over.append(overflowed)
         ok.append(good)
+        members.append(each)
     r = jnp.concatenate(rs)
-    return r, dict(overflowed=jnp.stack(over), ok=tuple(ok), loss=jnp.sum(r ** 2))
+    return r, dict(overflowed=jnp.stack(over), ok=tuple(ok), members=tuple(members),
+                   loss=jnp.sum(r ** 2))
 
 
 def residual_problem(names, lims, terms, plist):
@@ -118,10 +129,11 @@ def residual_problem(names, lims, terms, plist):
 
 def calibration_loss(params: Params, setup, target, weights=LossWeights()):
     """Sum of squared residuals of ``params`` on one lab-test set-up against one
-    target (the mean over an ensemble's members), and the pure run's history."""
+    target (of an ensemble's mean residuals, :func:`term_residuals`), and the pure
+    run's history."""
     term = make_terms(setup, target, weights)[0]
     hist = lab.curve(setup, params).history
-    r, _ = term_residuals(hist, term)
+    r, _, _ = term_residuals(hist, term)
     return jnp.sum(r ** 2), hist
 
 
@@ -158,24 +170,23 @@ def residuals_per_member(term) -> int:
     return len(term.target)
 
 
-def member_blocks(terms, ok):
+def member_blocks(terms, ok, members):
     """One :class:`jdem.calibrate.result.MemberBlock` per ensemble term (a set-up
-    of several members): where its members' residuals lie in the residual vector
-    of :func:`residual_fn`, and ``ok`` (that function's aux ``ok``, one flags
-    array per term) for the members that did not diverge."""
+    of several members): where its (mean) residuals lie in the residual vector of
+    :func:`residual_fn`, each member's residuals and ``ok`` flags (that
+    function's aux ``members`` and ``ok``, one array per term)."""
     from jdem.calibrate.result import MemberBlock
 
     out, start = [], 0
-    for term, flags in zip(terms, ok):
-        members, size = term.setup.n_members, residuals_per_member(term)
-        if term.setup.plan.batched and members > 1:
-            out.append(MemberBlock(start, members, size, np.asarray(flags, bool)))
-        start += members * size
+    for term, flags, each in zip(terms, ok, members):
+        size = residuals_per_member(term)
+        if term.setup.plan.batched and term.setup.n_members > 1:
+            out.append(MemberBlock(start, size, np.asarray(each), np.asarray(flags, bool)))
+        start += size
     return out
 
 
 def n_data(term):
-    """The residuals of ``term`` that carry data (curve points or figures, times
-    the members of an ensemble)."""
-    n = len(term.target.strain) if isinstance(term.target, Target) else len(term.target)
-    return n * term.setup.n_members
+    """The residuals of ``term`` that carry data (curve points or figures; an
+    ensemble's are its members' mean)."""
+    return len(term.target.strain) if isinstance(term.target, Target) else len(term.target)

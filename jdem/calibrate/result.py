@@ -74,37 +74,37 @@ class Uncertainty(NamedTuple):
 
 
 class MemberBlock(NamedTuple):
-    """Where one ensemble term's residuals lie in the residual vector: from
-    ``start``, ``members`` x ``size`` values, member-major, each member's
-    residuals over sqrt(members) (:func:`jdem.calibrate.problem.term_residuals`);
-    ``ok`` (members,) the members that ran without diverging."""
+    """One ensemble term in the residual vector: its ``size`` residuals (the
+    members' mean, :func:`jdem.calibrate.problem.term_residuals`) from ``start``;
+    ``members`` (K, size) each member's residuals and ``ok`` (K,) the members
+    that ran without diverging."""
 
     start: int
-    members: int
     size: int
+    members: np.ndarray
     ok: np.ndarray
 
 
-def packing_covariance(Jp, r, blocks, a_inv):
+def packing_covariance(Jp, blocks, a_inv):
     """(k, k) covariance of the fitted parameters from the packing-to-packing
     spread of the ensemble(s), and its degrees of freedom (members - 1).
 
-    At the optimum the fit's sensitivity to its target y is
-    d theta / d y = A^-1 Jbar^T, A = J^T J of the stacked residuals (the mean of
-    the members' J_m^T J_m) and Jbar the mean of the members' Jacobians.  A
-    target from a packing outside the ensemble differs from the ensemble's mean
-    curve by a packing deviation, which the members sample: d_m = r_m - mean(r).
-    Member m therefore shifts the fit by A^-1 Jbar^T d_m, and the covariance is
-    (1 + 1/K) times the sample covariance of these shifts over the K members (the
-    1/K for the ensemble's own mean, itself a sample of K packings).  Blocks with
-    the same member count are taken as built on the same packings, in order
-    (member m of each is packing m: their shifts add); blocks with different
-    counts as independent.  Diverged members (``ok`` False) are left out.
-    Returns ``(zeros, inf)`` without an ensemble of at least 2 good members."""
+    The fit matches the ensemble's mean residuals to the target, so its
+    sensitivity to the target y is d theta / d y = A^-1 J^T (J the Jacobian of
+    the mean residuals, A = J^T J).  A target from a packing outside the ensemble
+    differs from the ensemble's mean by a packing deviation, which the members
+    sample: d_m = r_m - mean(r).  Member m therefore shifts the fit by
+    A^-1 J^T d_m, and the covariance is (1 + 1/K) times the sample covariance of
+    these shifts over the K members (the 1/K for the ensemble's own mean, itself
+    a sample of K packings).  Blocks with the same member count are taken as
+    built on the same packings, in order (member m of each is packing m: their
+    shifts add); blocks with different counts as independent.  Diverged members
+    (``ok`` False) are left out.  Returns ``(zeros, inf)`` without an ensemble
+    of at least 2 good members."""
     k = Jp.shape[1]
     by_count = {}
     for b in blocks:
-        by_count.setdefault(b.members, []).append(b)
+        by_count.setdefault(len(b.ok), []).append(b)
     cov = np.zeros((k, k))
     dof = np.inf
     for count, group in by_count.items():
@@ -116,12 +116,9 @@ def packing_covariance(Jp, r, blocks, a_inv):
             continue
         shifts = np.zeros((kk, k))
         for b in group:
-            sl = slice(b.start, b.start + b.members * b.size)
-            scale = np.sqrt(b.members)     # undo term_residuals' 1/sqrt(members)
-            rm = (np.asarray(r)[sl].reshape(b.members, b.size) * scale)[good]
-            Jm = (Jp[sl].reshape(b.members, b.size, k) * scale)[good]
+            rm = np.asarray(b.members, np.float64)[good]
             dev = rm - rm.mean(axis=0)
-            shifts += dev @ Jm.mean(axis=0) @ a_inv.T
+            shifts += dev @ Jp[b.start:b.start + b.size] @ a_inv.T
         shifts -= shifts.mean(axis=0)
         cov += (1.0 + 1.0 / kk) * shifts.T @ shifts / (kk - 1)
         dof = min(dof, kk - 1)
@@ -161,7 +158,7 @@ def uncertainty(J, r, u, names, lims, n_fit, blocks=()) -> Uncertainty:
     except np.linalg.LinAlgError:
         a_inv = np.full((k, k), np.nan)
     cov_fit = s2 * a_inv
-    cov_pack, dof_pack = packing_covariance(Jp, r, blocks, a_inv)
+    cov_pack, dof_pack = packing_covariance(Jp, blocks, a_inv)
     cov = cov_fit + cov_pack
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     sd_pack = np.sqrt(np.clip(np.diag(cov_pack), 0.0, None))
