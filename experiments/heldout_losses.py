@@ -1,12 +1,15 @@
-"""The held-out check's losses, split: at the truth and at each fit, the loss the
-ensemble calibration minimises (the mean over members of each member's misfit
-to the target) and its two parts, the misfit of the members' mean residuals
-and the spread of the members about it.
+"""The held-out check's losses, split: at the truth and at each fit, the mean
+over members of each member's squared misfit to the target (what an ensemble
+calibration minimised until 2026-12-08) and its two parts, the misfit of the
+members' mean residuals (what it minimises since) and the spread of the members
+about that mean (since then left to the intervals).
 
     python experiments/heldout_losses.py [--out experiments/results/heldout_calibration]
 
-Reads the fitted values from ``post_peak_0`` and ``post_peak_1_fd`` (written by
-experiments/heldout_calibration.py) under ``--out``; writes ``losses.md``/``.json``
+Reads the fitted values of the runs ``post_peak_0``, ``post_peak_1_fd`` (fits of the
+mean of the members' losses) and ``mean_post_peak_0``, ``mean_post_peak_1_fd`` (fits of
+the members' mean), those present, written by experiments/heldout_calibration.py under
+``--out``; writes ``losses.md``/``.json``
 there.  Same target, ensemble and loading rate as that script's defaults.
 """
 from __future__ import annotations
@@ -43,15 +46,17 @@ def main(argv=None):
                                  stress=np.asarray(hist["axial_stress"])))
     ens = lab.UCS.setup([hc.packing(s, size) for s in range(4)], params, **kw)
     points = {"truth": hc.TRUE, "start": hc.START}
-    for run in ("post_peak_0", "post_peak_1_fd"):
-        rows = json.loads((a.out / run / "heldout_calibration.json").read_text())["rows"]
-        points[run] = {n: r["fitted"] for n, r in rows.items()}
+    for run in ("post_peak_0", "post_peak_1_fd", "mean_post_peak_0", "mean_post_peak_1_fd"):
+        path = a.out / run / "heldout_calibration.json"
+        if path.exists():
+            rows = json.loads(path.read_text())["rows"]
+            points[run] = {n: r["fitted"] for n, r in rows.items()}
     curve = jax.jit(lambda p: lab.curve(ens, p).history)
     out = {}
     md = ["# The held-out check's losses, split into the mean misfit and the members' spread",
           "", "`python experiments/heldout_losses.py`; target packing 10, ensemble packings 0-3, "
           "rate 3.2e-5, float32 runs.", "",
-          "| point | post-peak weight | loss (mean over members) | misfit of the mean | spread "
+          "| point | post-peak weight | mean of the members' losses | misfit of the mean | spread "
           "about the mean | member peaks [MPa] |", "|---|---|---|---|---|---|"]
     for name, values in points.items():
         h = curve(material(ens.params, values))
