@@ -17,7 +17,7 @@ Levenberg-Marquardt iteration, from the difference of a 1- and an
 ``LM_ITERATIONS``-iteration fit from (E +40 %, strength -30 %, kappa +50 %)
 after a compiling fit: an iteration should cost one Jacobian.  The same
 through ``optimistix.least_squares`` with the residual function wrapped
-(:func:`jdem.calibrate.solvers.with_forward_jacobian`, what calibrate does)
+(:func:`jdem.calibrate.solvers.with_materialised_jacobian`, what calibrate does)
 and with optimistix's own forward mode (``jac="fwd"``), for comparison.
 """
 import functools
@@ -33,7 +33,7 @@ jax.config.update("jax_enable_x64", True)
 from jdem import calibrate as cb  # noqa: E402
 from jdem import lab, materials  # noqa: E402
 from jdem.calibrate.problem import make_terms, residual_problem  # noqa: E402
-from jdem.calibrate.solvers import jacobian_at, with_forward_jacobian  # noqa: E402
+from jdem.calibrate.solvers import jacobian_at, with_materialised_jacobian  # noqa: E402
 from jdem.calibrate.transform import bounds_for, to_internal  # noqa: E402
 from jdem.specimen import generate  # noqa: E402
 
@@ -132,7 +132,7 @@ def lm_problem(setup, true):
                                   options=dict(jac=jac), max_steps=n, throw=False).value
 
     calls = {"lm_iteration": lambda n: cb.calibrate(setup, target, start, steps=n, **kw).loss,
-             "optx_iteration_wrapped": functools.partial(optx_fit, with_forward_jacobian(plain),
+             "optx_iteration_wrapped": functools.partial(optx_fit, with_materialised_jacobian(plain),
                                                          "bwd"),
              "optx_iteration_jac_fwd": functools.partial(optx_fit, plain, "fwd")}
     return fn, args, u, calls

@@ -365,6 +365,7 @@ def calibrate_settings(config_path=None, small=False) -> dict:
     ``[specimen] members`` ensemble size and the ``[fit]`` table)."""
     import copy
 
+    from jdem.calibrate.fit import JACOBIANS, METHODS
     from jdem.materials import PARAMETERS
     from jdem.validate import InputError
 
@@ -384,10 +385,10 @@ def calibrate_settings(config_path=None, small=False) -> dict:
         if n not in PARAMETERS:
             raise InputError(f"fit.parameters: unknown parameter {n!r}; choose from "
                              f"{sorted(PARAMETERS)}")
-    if fit["method"] not in ("lm", "gauss_newton", "adam"):
+    if fit["method"] not in METHODS:
         raise InputError(f"fit.method must be \"lm\", \"gauss_newton\" or \"adam\", got "
                          f"{fit['method']!r}")
-    jacobians = ("auto", "forward", "reverse", "finite-difference")
+    jacobians = ("auto",) + JACOBIANS
     if fit["jacobian"] not in jacobians:
         raise InputError(f"fit.jacobian must be one of {jacobians}, got {fit['jacobian']!r}")
     _number("fit.steps", fit["steps"], lo=1, integer=True)

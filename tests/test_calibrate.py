@@ -680,17 +680,17 @@ def test_recovery_three_parameters_on_a_different_packing():
 
 
 def test_the_forward_jacobian_wrapper_has_the_exact_reverse_derivative():
-    """with_forward_jacobian (what Levenberg-Marquardt differentiates): its VJP
+    """with_materialised_jacobian (what Levenberg-Marquardt differentiates): its VJP
     J^T ct, by jax.jacrev, is the Jacobian by jax.jacfwd of the plain function,
     and the loss in its aux gets 2 J^T r; values unchanged."""
-    from jdem.calibrate.solvers import with_forward_jacobian
+    from jdem.calibrate.solvers import with_materialised_jacobian
 
     def fn(u, a):
         r = jnp.stack([jnp.sin(u[0]) * a["c"], u[0] * u[1] ** 2, jnp.exp(-u[1])])
         return r, dict(loss=jnp.sum(r ** 2), ok=jnp.array([True]))
 
     u, args = jnp.asarray([0.3, -1.2]), dict(c=jnp.asarray(2.0))
-    wrapped = with_forward_jacobian(fn)
+    wrapped = with_materialised_jacobian(fn)
     np.testing.assert_allclose(wrapped(u, args)[0], fn(u, args)[0], rtol=0, atol=0)
     exact = jax.jacfwd(lambda v: fn(v, args)[0])(u)
     np.testing.assert_allclose(jax.jacrev(lambda v: wrapped(v, args)[0])(u), exact, rtol=1e-12)
@@ -764,8 +764,7 @@ def test_ensemble_fit_reports_its_packing_spread():
     """An ensemble of two packings fitted to a third's curve (E and strength, up
     to the peak): the standard errors carry the packing-to-packing part
     (``packing_std_errors``, positive, at most the whole), the 95 % intervals take
-    Student's t (between 1.96 and 12.71 standard errors for 2 members), and the
-    member blocks line up with the residual vector (else calibrate raises)."""
+    Student's t (between 1.96 and 12.71 standard errors for 2 members)."""
     params0 = lt.rock_params(2, kappa=3e-3)
     ens = lab.UCS.setup([specimen(3), specimen(4)], params0, max_strain=MAX_STRAIN,
                         loading_rate=RATE, stiffness_margin=2.0)
@@ -786,7 +785,7 @@ def test_finite_difference_jacobian_is_central_differences_with_the_aux_folded()
     """finite_difference_jacobian on a smooth function: the central differences
     (error h^2 f'''/6), the primal residuals unchanged; a shifted run that
     overflows or diverges marks the base run's aux; bad modes are refused."""
-    from jdem.calibrate.solvers import finite_difference_jacobian, with_forward_jacobian
+    from jdem.calibrate.solvers import finite_difference_jacobian, with_materialised_jacobian
 
     def fn(u, a):
         r = jnp.stack([jnp.sin(u[0]) * a, u[0] * u[1] ** 2, jnp.exp(-u[1])])
@@ -799,10 +798,10 @@ def test_finite_difference_jacobian_is_central_differences_with_the_aux_folded()
     np.testing.assert_array_equal(r, fn(u, a)[0])
     np.testing.assert_allclose(J, jax.jacfwd(lambda v: fn(v, a)[0])(u), rtol=2e-6)
     assert bool(aux["overflowed"][0]) and np.asarray(aux["ok"][0]).tolist() == [True, False]
-    wrapped = with_forward_jacobian(fn, "finite-difference", 1e-3)
+    wrapped = with_materialised_jacobian(fn, "finite-difference", 1e-3)
     np.testing.assert_allclose(jax.jacrev(lambda v: wrapped(v, a)[0])(u), J, rtol=1e-12)
     with pytest.raises(InputError, match="mode"):
-        with_forward_jacobian(fn, "secant")
+        with_materialised_jacobian(fn, "secant")
 
 
 @pytest.mark.slow

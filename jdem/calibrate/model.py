@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jdem.calibrate.result import uncertainty
-from jdem.calibrate.solvers import jacobian_at, with_forward_jacobian
+from jdem.calibrate.solvers import jacobian_at, with_materialised_jacobian
 from jdem.calibrate.transform import bounds_for, to_internal, to_value
 from jdem.validate import InputError
 
@@ -77,8 +77,8 @@ def fit_model(model: Callable, data, start: dict, *, bounds: dict | None = None,
 
     u0 = jnp.asarray([to_internal(float(start[n]), *lims[n]) for n in names])
     plain = lambda u, args: (residuals(u, args), None)
-    # forward mode: one forward-mode pass per iteration (solvers.with_forward_jacobian)
-    fn = with_forward_jacobian(plain) if jacobian == "forward" else plain
+    # forward mode: one forward-mode pass per iteration (solvers.with_materialised_jacobian)
+    fn = with_materialised_jacobian(plain) if jacobian == "forward" else plain
     sol = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol), u0,
                              has_aux=True, options=dict(jac="bwd"), max_steps=max_steps,
                              throw=False)

@@ -160,16 +160,6 @@ def peakless(terms, histories) -> list:
     return out
 
 
-def residuals_per_member(term) -> int:
-    """How many residuals one member of ``term`` contributes
-    (:func:`jdem.targets.curve_residuals`: the points, the peak and the modulus,
-    and the points again with a lateral-strain target; or one per figure)."""
-    if isinstance(term.target, Target):
-        n = len(term.target.strain)
-        return 2 * n + 2 if term.target.lateral_strain is not None else n + 2
-    return len(term.target)
-
-
 def member_blocks(terms, ok, members):
     """One :class:`jdem.calibrate.result.MemberBlock` per ensemble term (a set-up
     of several members): where its (mean) residuals lie in the residual vector of
@@ -179,7 +169,7 @@ def member_blocks(terms, ok, members):
 
     out, start = [], 0
     for term, flags, each in zip(terms, ok, members):
-        size = residuals_per_member(term)
+        size = np.shape(each)[1]          # the length of the term's mean residuals
         if term.setup.plan.batched and term.setup.n_members > 1:
             out.append(MemberBlock(start, size, np.asarray(each), np.asarray(flags, bool)))
         start += size

@@ -101,13 +101,13 @@ def _run_with_jacobian(fn, u, args, mode="forward", step=FD_STEP):
     return run(dynamic, u, args)
 
 
-def with_forward_jacobian(fn, mode="forward", step=FD_STEP):
-    """``fn(u, args) -> (residuals, aux)`` whose reverse-mode derivative is one
-    forward-mode pass (:func:`forward_jacobian`; with ``mode``
-    "finite-difference", :func:`finite_difference_jacobian` with ``step``), kept
-    as the matrix J: its VJP is J^T times the cotangent (and 2 J^T r times that
-    of ``aux["loss"]``, the sum of squares, if aux has one).  Returned as a
-    ``jax.tree_util.Partial``.
+def with_materialised_jacobian(fn, mode="forward", step=FD_STEP):
+    """``fn(u, args) -> (residuals, aux)`` whose reverse-mode derivative is the
+    Jacobian computed once in the forward pass: one forward-mode pass
+    (:func:`forward_jacobian`), or with ``mode`` "finite-difference"
+    :func:`finite_difference_jacobian` with ``step``, kept as the matrix J: its
+    VJP is J^T times the cotangent (and 2 J^T r times that of ``aux["loss"]``,
+    the sum of squares, if aux has one).  Returned as a ``jax.tree_util.Partial``.
 
     Why.  optimistix's Gauss-Newton family with ``jac="fwd"`` linearises ``fn`` at
     every trial point and applies the linear map three times per iteration: to
@@ -231,7 +231,7 @@ def least_squares(terms, plist, u, names, lims, record, history, steps, *, metho
     solver = (optx.LevenbergMarquardt if method == "lm" else optx.GaussNewton)(rtol=rtol,
                                                                                 atol=atol)
     # forward mode (and finite differences) go through optimistix's materialising
-    # (jacrev) path with one forward-mode pass inside (with_forward_jacobian)
+    # (jacrev) path with the Jacobian computed once inside (with_materialised_jacobian)
     options = dict(jac="bwd")
     tags = frozenset()
     progress = Progress(min(history["loss"]) if history["loss"] else np.inf, patience,
@@ -240,7 +240,7 @@ def least_squares(terms, plist, u, names, lims, record, history, steps, *, metho
     while k < steps:
         fn, args = residual_problem(names, lims, terms, plist)
         if jacobian in MATERIALISED:
-            fn = with_forward_jacobian(fn, jacobian, fd_step)
+            fn = with_materialised_jacobian(fn, jacobian, fd_step)
         f_struct, aux_struct = jax.eval_shape(fn, u, args)
         compiled = compiled_steps()
         # the state through the cached jit too, built as the cached step expects it
